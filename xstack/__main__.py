@@ -1,0 +1,5 @@
+import sys
+
+from xstack.cli import main
+
+sys.exit(main())

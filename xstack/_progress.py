@@ -1,0 +1,55 @@
+"""Progress reporting on stderr: a tqdm bar for dask computations and for plain loops."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from collections.abc import Iterable, Iterator
+from typing import Any, TypeVar
+
+from dask.callbacks import Callback
+from tqdm.auto import tqdm
+
+T = TypeVar("T")
+
+
+class _TqdmCallback(Callback):
+    """Dask local-scheduler callback that advances a tqdm bar as tasks finish."""
+
+    def __init__(self, description: str) -> None:
+        super().__init__()
+        self.description = description
+        self.bar: Any = None
+
+    def _start_state(self, dsk: Any, state: dict) -> None:
+        total = sum(len(state[k]) for k in ("ready", "waiting", "running", "finished"))
+        self.bar = tqdm(total=total, desc=self.description, file=sys.stderr, unit="task",
+                        leave=False, dynamic_ncols=True)
+
+    def _posttask(self, key: Any, result: Any, dsk: Any, state: dict, worker_id: Any) -> None:
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def _finish(self, dsk: Any, state: dict, errored: bool) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+@contextlib.contextmanager
+def dask_progress(description: str = "computing", enabled: bool = True) -> Iterator[None]:
+    """Show a progress bar on stderr for dask computations run inside the block."""
+    if not enabled:
+        yield
+        return
+    with _TqdmCallback(description):
+        yield
+
+
+def progress_iter(items: Iterable[T], description: str = "", enabled: bool = True,
+                  total: int | None = None) -> Iterable[T]:
+    """Wrap an iterable in a tqdm bar on stderr when ``enabled``."""
+    if not enabled:
+        return items
+    return tqdm(items, desc=description, total=total, file=sys.stderr, leave=False,
+                dynamic_ncols=True)

@@ -1,0 +1,201 @@
+"""Primary-beam models: power attenuation A(theta, nu) of a single dish, per channel.
+
+Models (``docs/conventions.md``):
+
+``airy``
+    Power pattern of a uniformly illuminated circular aperture of diameter D with a central
+    blockage of diameter b (epsilon = b / D)::
+
+        E(x) = [2 J1(x)/x - eps^2 2 J1(eps x)/(eps x)] / (1 - eps^2),  x = pi D sin(theta) / lambda
+        A = E^2
+
+    ALMA 12 m antennas use D = 10.7 m, b = 0.75 m (the convention of CASA's ALMA model);
+    any other telescope uses its physical dish and no blockage unless told otherwise.
+``gaussian``
+    A = exp(-4 ln 2 theta^2 / FWHM^2) with FWHM = 1.13 lambda / D (the ALMA handbook value).
+``vla``
+    The polynomial models of EVLA Memo 195 (Perley 2016), as CASA applies them:
+    A = 1 + a x^2 + b x^4 + c x^6 (+ d x^8), x = theta[arcmin] * nu[GHz]; coefficients of the
+    tabulated frequency nearest to each channel. Beyond the first null A = 0.
+
+``standard_beam(telescope, dish_diameter)`` picks the telescope's standard model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.special import j1
+
+from xstack.coords import SPEED_OF_LIGHT
+from xstack.errors import XstackError
+
+#: Default attenuation below which a position is taken to be outside a pointing.
+DEFAULT_PB_CUTOFF = 0.1
+
+# EVLA Memo 195 (Perley 2016) coefficients (a, b, c[, d]) by frequency in MHz; the full
+# L band (the paper's 1.4 GHz) and one representative set in each higher band.
+_VLA_COEFFS_MHZ: dict[float, tuple[float, ...]] = {
+    1040: (-1.529e-3, 8.69e-7, -1.88e-10),
+    1104: (-1.486e-3, 8.15e-7, -1.68e-10),
+    1168: (-1.439e-3, 7.53e-7, -1.45e-10),
+    1232: (-1.450e-3, 7.87e-7, -1.63e-10),
+    1296: (-1.428e-3, 7.62e-7, -1.54e-10),
+    1360: (-1.449e-3, 8.02e-7, -1.74e-10),
+    1424: (-1.462e-3, 8.23e-7, -1.83e-10),
+    1488: (-1.455e-3, 7.92e-7, -1.63e-10),
+    1552: (-1.435e-3, 7.54e-7, -1.49e-10),
+    1680: (-1.443e-3, 7.74e-7, -1.57e-10),
+    1744: (-1.462e-3, 8.02e-7, -1.69e-10),
+    1808: (-1.488e-3, 8.38e-7, -1.83e-10),
+    1872: (-1.486e-3, 8.26e-7, -1.75e-10),
+    1936: (-1.459e-3, 7.93e-7, -1.62e-10),
+    2000: (-1.508e-3, 8.31e-7, -1.68e-10),
+    3052: (-1.467e-3, 8.05e-7, -1.70e-10),
+    6052: (-1.445e-3, 7.68e-7, -1.50e-10),
+    10052: (-1.421e-3, 7.46e-7, -1.45e-10),
+    15052: (-1.402e-3, 7.38e-7, -1.48e-10),
+    21948: (-1.439e-3, 7.82e-7, -1.61e-10),
+    28564: (-1.455e-3, 7.87e-7, -1.59e-10),
+}
+_VLA_FREQS = np.array(sorted(_VLA_COEFFS_MHZ))
+
+
+@dataclass(frozen=True)
+class PrimaryBeam:
+    """A circularly symmetric primary-beam model.
+
+    Parameters
+    ----------
+    model
+        ``"airy"``, ``"gaussian"``, ``"vla"`` or ``"none"`` (A = 1 everywhere).
+    dish_diameter
+        Effective aperture diameter D, metres (``airy``, ``gaussian``).
+    blockage_diameter
+        Central blockage diameter b, metres (``airy``).
+    cutoff
+        Attenuation below which a direction counts as outside the beam.
+    """
+
+    model: str = "airy"
+    dish_diameter: float = 25.0
+    blockage_diameter: float = 0.0
+    cutoff: float = DEFAULT_PB_CUTOFF
+
+    def __post_init__(self) -> None:
+        if self.model not in ("airy", "gaussian", "vla", "none"):
+            raise XstackError(f"unknown primary-beam model {self.model!r} "
+                              "(use airy, gaussian, vla or none)")
+        if self.model in ("airy", "gaussian") and not self.dish_diameter > 0:
+            raise XstackError(f"dish diameter must be positive, got {self.dish_diameter}")
+        if not 0 <= self.blockage_diameter < self.dish_diameter or not 0 <= self.cutoff < 1:
+            raise XstackError("primary beam: need 0 <= blockage < dish and 0 <= cutoff < 1")
+
+    def __call__(self, theta: Any, frequency: Any) -> np.ndarray:
+        """Power attenuation at angular distance ``theta`` (rad) and ``frequency`` (Hz).
+
+        ``theta`` and ``frequency`` broadcast against each other.
+        """
+        theta = np.asarray(theta, dtype=np.float64)
+        freq = np.asarray(frequency, dtype=np.float64)
+        if self.model == "none":
+            return np.ones(np.broadcast_shapes(theta.shape, freq.shape))
+        if self.model == "gaussian":
+            fwhm = 1.13 * SPEED_OF_LIGHT / (freq * self.dish_diameter)
+            return np.exp(-4.0 * np.log(2.0) * (theta / fwhm) ** 2)
+        if self.model == "airy":
+            return _airy_power(theta, freq, self.dish_diameter, self.blockage_diameter)
+        return _vla_power(theta, freq)
+
+    def fwhm(self, frequency: float) -> float:
+        """Full width at half maximum (rad) at ``frequency`` (Hz), found numerically."""
+        from scipy.optimize import brentq
+
+        if self.model == "none":
+            return np.inf
+        guess = 1.5 * SPEED_OF_LIGHT / (frequency * max(self.dish_diameter, 1.0))
+        return 2.0 * brentq(lambda t: float(self(t, frequency)) - 0.5, 1e-9, 2 * guess)
+
+    def radius_at(self, level: float, frequency: float) -> float:
+        """Angular radius (rad) where the attenuation first falls to ``level``."""
+        from scipy.optimize import brentq
+
+        if self.model == "none":
+            return np.inf
+        guess = 1.5 * SPEED_OF_LIGHT / (frequency * max(self.dish_diameter, 1.0))
+        hi = guess
+        while float(self(hi, frequency)) > level and hi < np.pi / 2:
+            hi *= 1.5
+        return brentq(lambda t: float(self(t, frequency)) - level, 0.0, hi)
+
+
+def _airy_power(theta: np.ndarray, freq: np.ndarray, diameter: float, blockage: float) -> np.ndarray:
+    x = np.pi * diameter * np.sin(theta) * freq / SPEED_OF_LIGHT
+    eps = blockage / diameter
+    small = np.abs(x) < 1e-8
+    xs = np.where(small, 1.0, x)
+    jinc = np.where(small, 1.0, 2.0 * j1(xs) / xs)
+    if eps > 0:
+        ex = eps * xs
+        jinc_b = np.where(small, 1.0, 2.0 * j1(ex) / ex)
+        voltage = (jinc - eps**2 * jinc_b) / (1.0 - eps**2)
+    else:
+        voltage = jinc
+    return voltage * voltage
+
+
+def _pad4(c: tuple[float, ...]) -> tuple[float, float, float, float]:
+    return tuple(c) + (0.0,) * (4 - len(c))  # type: ignore[return-value]
+
+
+def _first_null_x2(coeffs: tuple[float, float, float, float]) -> float:
+    """Smallest positive y = x^2 where 1 + a y + b y^2 + c y^3 + d y^4 = 0."""
+    a, b, c, d = coeffs
+    roots = np.roots([d, c, b, a, 1.0])
+    real = roots[(np.abs(roots.imag) < 1e-9 * np.abs(roots)) & (roots.real > 0)].real
+    return float(real.min()) if real.size else np.inf
+
+
+_VLA_TABLE = np.array([_pad4(_VLA_COEFFS_MHZ[f]) for f in _VLA_FREQS])
+_VLA_NULLS = np.array([_first_null_x2(tuple(row)) for row in _VLA_TABLE])
+
+
+def _vla_power(theta: np.ndarray, freq: np.ndarray) -> np.ndarray:
+    freq_mhz = freq * 1e-6
+    idx = np.abs(_VLA_FREQS[:, None] - np.ravel(freq_mhz)[None, :]).argmin(axis=0)
+    idx = idx.reshape(np.shape(freq_mhz))
+    a, b, c, d = (_VLA_TABLE[idx, k] for k in range(4))
+    x2 = (np.degrees(theta) * 60.0 * freq_mhz / 1e3) ** 2
+    power = 1.0 + x2 * (a + x2 * (b + x2 * (c + x2 * d)))
+    # the polynomial describes the main lobe only: zero from the first null outwards
+    return np.where((x2 < _VLA_NULLS[idx]) & (power > 0), power, 0.0)
+
+
+def standard_beam(telescope: str, dish_diameter: float = 25.0, model: str | None = None,
+                  cutoff: float = DEFAULT_PB_CUTOFF) -> PrimaryBeam:
+    """The conventional primary beam of a telescope.
+
+    Parameters
+    ----------
+    telescope
+        Telescope name as in an MS (``ALMA``, ``VLA``, ``EVLA``, ...).
+    dish_diameter
+        Physical dish diameter, metres (used for telescopes without a standard model).
+    model
+        Force ``airy``, ``gaussian`` or ``none``; ``None`` picks the telescope's standard.
+    cutoff
+        Attenuation below which a direction is outside the beam.
+    """
+    name = telescope.strip().upper()
+    if model == "none":
+        return PrimaryBeam("none", cutoff=cutoff)
+    is_alma = name.startswith("ALMA") and abs(dish_diameter - 12.0) < 0.5
+    if model in (None, "airy") and is_alma:
+        return PrimaryBeam("airy", 10.7, 0.75, cutoff)
+    if model is None and name in ("VLA", "EVLA", "JVLA"):
+        return PrimaryBeam("vla", dish_diameter, 0.0, cutoff)
+    if model == "gaussian":
+        return PrimaryBeam("gaussian", dish_diameter, 0.0, cutoff)
+    return PrimaryBeam("airy", dish_diameter, 0.0, cutoff)

@@ -1,0 +1,95 @@
+"""The ``xstack`` command line: one sub-command per pipeline stage.
+
+Each sub-command lives in its own module ``xstack.cli.<name>`` that defines
+
+``add_parser(subparsers) -> argparse.ArgumentParser``
+    registers the sub-command, its help and options, and
+``run(args) -> int``
+    does the work and returns the exit status.
+
+User mistakes raise :class:`xstack.errors.XstackError`; they are printed as one line
+``error: ...`` on stderr with exit status 1, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+from xstack.errors import XstackError
+
+#: Sub-commands in the order ``xstack --help`` lists them.
+COMMANDS = ("convert", "export", "simulate", "image", "subtract", "uvstack", "imstack",
+            "fit", "noise", "demo")
+
+
+def _load(name: str) -> Any | None:
+    try:
+        return importlib.import_module(f"xstack.cli.{name}")
+    except ModuleNotFoundError as exc:
+        if exc.name == f"xstack.cli.{name}":
+            return None  # stage not built into this version
+        raise
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The top-level argument parser with every available sub-command."""
+    from xstack import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="xstack",
+        description="Stacking of radio-interferometric data in the uv- and image-domain "
+                    "(Lindroos et al. 2015).")
+    parser.add_argument("--version", action="version", version=f"xstack {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        module = _load(name)
+        if module is not None:
+            sp = module.add_parser(sub)
+            sp.set_defaults(_run=module.run)
+    return parser
+
+
+def emit_json(payload: dict[str, Any]) -> None:
+    """Print one JSON object on stdout (the only thing a ``--json`` run prints there)."""
+    sys.stdout.write(json.dumps(payload, indent=2, sort_keys=True, default=_json_default))
+    sys.stdout.write("\n")
+    sys.stdout.flush()
+
+
+def _json_default(obj: Any) -> Any:
+    import numpy as np
+
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``xstack`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "_run", None) is None:
+        parser.print_help(sys.stderr)
+        return 2
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module="dask")
+    try:
+        status = args._run(args)
+    except XstackError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    return int(status or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,370 @@
+"""The xstack data model: zarr (v3) "processing sets" opened as :class:`xarray.DataTree`.
+
+One store holds one dataset. Its root group carries the schema attributes; each child group
+is one *partition* (spectral window x field, and scan where needed), an :class:`xarray.Dataset`
+with MSv4 names::
+
+    VISIBILITY  (time, baseline_id, frequency, polarization)  complex64 | complex128, Jy
+    WEIGHT      (time, baseline_id, frequency, polarization)  float32, 1/Jy^2
+    FLAG        (time, baseline_id, frequency, polarization)  bool, True = do not use
+    UVW         (time, baseline_id, uvw_label)                float64, metres
+    ANTENNA_POSITION (antenna_name, cartesian_pos_label)      float64, ITRF metres
+    DISH_DIAMETER    (antenna_name)                            float64, metres
+
+The full description, with every attribute, is ``docs/schema.md``. This module is the single
+place that builds (:func:`new_partition`), checks (:func:`validate_partition`,
+:func:`validate_store`), writes (:func:`write_store`) and opens (:func:`open_store`) them.
+Stores hold only numeric, boolean and UTF-8 string arrays and JSON attributes: nothing is
+ever pickled, so opening a store from elsewhere runs no code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from xstack._atomic import atomic_output
+from xstack.errors import SchemaError, XstackError
+
+SCHEMA_NAME = "xstack.processing_set"
+SCHEMA_VERSION = "1.0"
+KINDS = ("processing_set", "stacked")
+
+VIS_DIMS = ("time", "baseline_id", "frequency", "polarization")
+UVW_DIMS = ("time", "baseline_id", "uvw_label")
+ANTENNA_DIMS = ("antenna_name", "cartesian_pos_label")
+
+#: Required attributes of every partition, with the JSON type each must have.
+PARTITION_ATTRS: dict[str, type | tuple[type, ...]] = {
+    "schema_version": str,
+    "field_name": str,
+    "field_id": int,
+    "spectral_window_id": int,
+    "phase_center": list,  # [ra, dec] in radians, ICRS
+    "telescope_name": str,
+}
+
+STRING_DTYPE = np.dtypes.StringDType()
+
+#: Target size of one (time x baseline_id) chunk of VISIBILITY, bytes.
+DEFAULT_CHUNK_BYTES = 128 * 1024**2
+
+
+def as_strings(values: Any) -> np.ndarray:
+    """Return ``values`` as a numpy variable-length UTF-8 string array (never object)."""
+    return np.asarray([str(v) for v in np.ravel(np.asarray(values, dtype=object))],
+                      dtype=STRING_DTYPE).reshape(np.shape(values))
+
+
+def partition_name(spectral_window_id: int, field_id: int, scan: int | None = None) -> str:
+    """Name of the group that holds one partition, e.g. ``spw0_field2`` or ``spw0_field2_scan5``."""
+    name = f"spw{int(spectral_window_id)}_field{int(field_id)}"
+    return name if scan is None else f"{name}_scan{int(scan)}"
+
+
+def baseline_pairs(n_antennas: int, autocorrelations: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Antenna index pairs (i < j, or i <= j with autocorrelations) in MS order."""
+    i, j = np.triu_indices(n_antennas, k=0 if autocorrelations else 1)
+    return i.astype(np.int32), j.astype(np.int32)
+
+
+def default_time_chunk(n_baselines: int, n_channels: int, n_pols: int, itemsize: int = 8,
+                       target_bytes: int = DEFAULT_CHUNK_BYTES) -> int:
+    """Number of integrations per chunk so a VISIBILITY chunk holds ~``target_bytes``."""
+    per_time = max(1, n_baselines * n_channels * n_pols * itemsize)
+    return max(1, int(target_bytes // per_time))
+
+
+def new_partition(
+    *,
+    visibility: Any,
+    weight: Any,
+    flag: Any,
+    uvw: Any,
+    time: Any,
+    antenna1: Any,
+    antenna2: Any,
+    antenna_names: Any,
+    antenna_positions: Any,
+    dish_diameters: Any,
+    frequency: Any,
+    channel_width: Any,
+    polarization: Any,
+    phase_center: tuple[float, float],
+    field_name: str = "field0",
+    field_id: int = 0,
+    spectral_window_id: int = 0,
+    telescope_name: str = "unknown",
+    integration_time: float | None = None,
+    attrs: Mapping[str, Any] | None = None,
+) -> xr.Dataset:
+    """Build one partition Dataset in the xstack schema from plain or dask arrays.
+
+    Parameters
+    ----------
+    visibility, weight, flag
+        Arrays of shape (time, baseline, channel, polarization): complex visibilities in Jy,
+        weights in 1/Jy^2 (1/sigma^2), flags (True = bad).
+    uvw
+        Baseline coordinates, shape (time, baseline, 3), metres, as stored in an MS.
+    time
+        Integration mid-points, MJD seconds (UTC), as in an MS TIME column.
+    antenna1, antenna2
+        Antenna index (into ``antenna_names``) of each baseline.
+    antenna_names, antenna_positions, dish_diameters
+        Antenna table: names, ITRF positions (n, 3) in metres, dish diameters in metres.
+    frequency, channel_width
+        Channel centre frequencies and widths, Hz.
+    polarization
+        Correlation names, e.g. ``["XX", "YY"]`` or ``["RR", "RL", "LR", "LL"]``.
+    phase_center
+        (ra, dec) of the phase centre, radians, ICRS.
+    attrs
+        Extra JSON-serialisable attributes (provenance, stacking options...).
+    """
+    antenna1 = np.asarray(antenna1, dtype=np.int32)
+    antenna2 = np.asarray(antenna2, dtype=np.int32)
+    names = as_strings(antenna_names)
+    nbl = antenna1.size
+    coords = {
+        "time": ("time", np.asarray(time, dtype=np.float64),
+                 {"units": "s", "scale": "utc", "format": "mjd_seconds",
+                  **({"integration_time": float(integration_time)}
+                     if integration_time is not None else {})}),
+        "baseline_id": ("baseline_id", np.arange(nbl, dtype=np.int64)),
+        "baseline_antenna1_id": ("baseline_id", antenna1),
+        "baseline_antenna2_id": ("baseline_id", antenna2),
+        "baseline_antenna1_name": ("baseline_id", names[antenna1] if nbl else as_strings([])),
+        "baseline_antenna2_name": ("baseline_id", names[antenna2] if nbl else as_strings([])),
+        "frequency": ("frequency", np.asarray(frequency, dtype=np.float64), {"units": "Hz"}),
+        "channel_width": ("frequency", np.asarray(channel_width, dtype=np.float64),
+                          {"units": "Hz"}),
+        "polarization": ("polarization", as_strings(polarization)),
+        "uvw_label": ("uvw_label", as_strings(["u", "v", "w"])),
+        "antenna_name": ("antenna_name", names),
+        "cartesian_pos_label": ("cartesian_pos_label", as_strings(["x", "y", "z"])),
+    }
+    vis = visibility
+    if np.dtype(getattr(vis, "dtype", np.complex64)) not in (np.complex64, np.complex128):
+        vis = vis.astype(np.complex64)
+    data_vars = {
+        "VISIBILITY": (VIS_DIMS, vis, {"units": "Jy"}),
+        "WEIGHT": (VIS_DIMS, weight.astype(np.float32) if weight.dtype != np.float32 else weight,
+                   {"units": "Jy-2"}),
+        "FLAG": (VIS_DIMS, flag.astype(bool) if flag.dtype != bool else flag),
+        "UVW": (UVW_DIMS, uvw.astype(np.float64) if uvw.dtype != np.float64 else uvw,
+                {"units": "m", "frame": "ICRS", "convention": "as stored in a MeasurementSet"}),
+        "ANTENNA_POSITION": (ANTENNA_DIMS, np.asarray(antenna_positions, dtype=np.float64),
+                             {"units": "m", "frame": "ITRF"}),
+        "DISH_DIAMETER": ("antenna_name", np.asarray(dish_diameters, dtype=np.float64),
+                          {"units": "m"}),
+    }
+    ds_attrs = {
+        "schema_version": SCHEMA_VERSION,
+        "field_name": str(field_name),
+        "field_id": int(field_id),
+        "spectral_window_id": int(spectral_window_id),
+        "phase_center": [float(phase_center[0]), float(phase_center[1])],
+        "phase_center_frame": "ICRS",
+        "phase_center_units": "rad",
+        "telescope_name": str(telescope_name),
+    }
+    if attrs:
+        ds_attrs.update(attrs)
+    ds = xr.Dataset(data_vars, coords=coords, attrs=ds_attrs)
+    validate_partition(ds)
+    return ds
+
+
+def _fail(where: str, what: str) -> None:
+    raise SchemaError(f"{where}: {what}")
+
+
+def validate_partition(ds: xr.Dataset, name: str = "partition") -> xr.Dataset:
+    """Check that ``ds`` follows the xstack partition schema; return it unchanged.
+
+    Only metadata (names, dims, dtypes, attributes, shapes) is checked: no data is read.
+
+    Raises
+    ------
+    SchemaError
+        Naming the first problem found.
+    """
+    if not isinstance(ds, xr.Dataset):
+        _fail(name, f"expected an xarray.Dataset, got {type(ds).__name__}")
+    for var, dims in (("VISIBILITY", VIS_DIMS), ("WEIGHT", VIS_DIMS), ("FLAG", VIS_DIMS),
+                      ("UVW", UVW_DIMS)):
+        if var not in ds.variables:
+            _fail(name, f"missing variable {var}")
+        if tuple(ds[var].dims) != dims:
+            _fail(name, f"{var} has dims {tuple(ds[var].dims)}, expected {dims}")
+    kinds = {"VISIBILITY": "c", "WEIGHT": "f", "FLAG": "b", "UVW": "f"}
+    for var, kind in kinds.items():
+        if ds[var].dtype.kind != kind:
+            _fail(name, f"{var} has dtype {ds[var].dtype}, expected kind '{kind}'")
+    if ds["UVW"].dtype != np.float64:
+        _fail(name, f"UVW has dtype {ds['UVW'].dtype}, expected float64")
+    if ds.sizes.get("uvw_label") != 3:
+        _fail(name, "uvw_label must have length 3")
+    for coord in ("time", "frequency", "polarization", "baseline_antenna1_id",
+                  "baseline_antenna2_id", "channel_width"):
+        if coord not in ds.coords:
+            _fail(name, f"missing coordinate {coord}")
+    for var in ds.variables.values():
+        if var.dtype == object:
+            _fail(name, "object arrays are not allowed in a store (use numeric or string dtypes)")
+    for key, typ in PARTITION_ATTRS.items():
+        if key not in ds.attrs:
+            _fail(name, f"missing attribute {key!r}")
+        if not isinstance(ds.attrs[key], typ):
+            _fail(name, f"attribute {key!r} has type {type(ds.attrs[key]).__name__}")
+    if len(ds.attrs["phase_center"]) != 2:
+        _fail(name, "attribute 'phase_center' must be [ra, dec] in radians")
+    major = str(ds.attrs["schema_version"]).split(".")[0]
+    if major != SCHEMA_VERSION.split(".")[0]:
+        _fail(name, f"schema version {ds.attrs['schema_version']} is not supported "
+                    f"(this xstack reads {SCHEMA_VERSION})")
+    return ds
+
+
+def iter_partitions(tree: xr.DataTree) -> Iterator[tuple[str, xr.Dataset]]:
+    """Yield ``(name, Dataset)`` for every partition (group holding VISIBILITY) of a store."""
+    for node in tree.subtree:
+        if "VISIBILITY" in node.ds.variables:
+            yield (node.path.strip("/") or "/"), node.to_dataset()
+
+
+def _read_root_attrs(path: Path) -> dict[str, Any]:
+    """Read the root group's attributes as plain JSON (never through a codec)."""
+    meta = path / "zarr.json"
+    if not path.is_dir() or not meta.is_file():
+        raise SchemaError(f"{path}: not a zarr v3 store (no zarr.json)")
+    try:
+        doc = json.loads(meta.read_text())
+    except (OSError, ValueError) as exc:
+        raise SchemaError(f"{path}: corrupt zarr.json ({exc})") from None
+    if doc.get("node_type") != "group":
+        raise SchemaError(f"{path}: zarr root is not a group")
+    return doc.get("attributes", {}) or {}
+
+
+def validate_store(path: str | os.PathLike) -> dict[str, Any]:
+    """Check the root attributes of an xstack store on disk; return them.
+
+    A store left behind by an interrupted write never validates: the ``xstack_complete``
+    flag is written last, and stores are renamed into place only after that.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise XstackError(f"{path}: no such store")
+    attrs = _read_root_attrs(path)
+    if attrs.get("xstack_schema") != SCHEMA_NAME:
+        raise SchemaError(f"{path}: not an xstack store (no xstack_schema attribute)")
+    if not attrs.get("xstack_complete", False):
+        raise SchemaError(f"{path}: incomplete store (an interrupted write?)")
+    version = str(attrs.get("xstack_schema_version", ""))
+    if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
+        raise SchemaError(f"{path}: schema version {version!r} is not supported")
+    if attrs.get("xstack_kind") not in KINDS:
+        raise SchemaError(f"{path}: unknown store kind {attrs.get('xstack_kind')!r}")
+    return attrs
+
+
+def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None) -> xr.DataTree:
+    """Open an xstack store lazily (dask-backed) as an :class:`xarray.DataTree`.
+
+    Parameters
+    ----------
+    path
+        The ``.zarr`` directory written by ``xstack convert``, ``simulate``, ``uvstack``...
+    chunks
+        Optional dask chunks per dimension; default: the chunks on disk.
+
+    Raises
+    ------
+    SchemaError
+        If the path is not a complete xstack store of a supported schema version, or a
+        partition does not follow the schema.
+    """
+    path = Path(path)
+    validate_store(path)
+    try:
+        tree = xr.open_datatree(path, engine="zarr", chunks=dict(chunks or {}),
+                                consolidated=False, zarr_format=3)
+    except Exception as exc:  # zarr/xarray raise many types for damaged stores
+        raise SchemaError(f"{path}: cannot be opened as a zarr store ({exc})") from None
+    n = 0
+    for name, ds in iter_partitions(tree):
+        validate_partition(ds, f"{path}/{name}")
+        n += 1
+    if n == 0:
+        raise SchemaError(f"{path}: store holds no partitions")
+    return tree
+
+
+def write_store(
+    partitions: Mapping[str, xr.Dataset],
+    path: str | os.PathLike,
+    *,
+    kind: str = "processing_set",
+    overwrite: bool = False,
+    attrs: Mapping[str, Any] | None = None,
+    progress: bool = False,
+    description: str = "writing",
+) -> Path:
+    """Write partitions to a new store, atomically.
+
+    Data are written under a temporary name beside ``path``; the completion flag is set and
+    the directory renamed into place only after everything has been written, so an
+    interrupted run never leaves a store that opens as valid. Dask-backed partitions are
+    computed chunk by chunk while writing (memory bounded by a few chunks).
+
+    Parameters
+    ----------
+    partitions
+        Mapping of group name (see :func:`partition_name`) to partition Dataset.
+    path
+        Output ``.zarr`` directory.
+    kind
+        ``"processing_set"`` or ``"stacked"``.
+    overwrite
+        Replace an existing output. Without it an existing ``path`` is an error.
+    attrs
+        Extra JSON-serialisable root attributes (provenance).
+    progress
+        Show a progress bar on stderr.
+    """
+    from xstack._progress import dask_progress
+
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}")
+    if not partitions:
+        raise XstackError("nothing to write: no partitions")
+    for name, ds in partitions.items():
+        validate_partition(ds, name)
+    import zarr
+
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+        root.attrs.update({
+            "xstack_schema": SCHEMA_NAME,
+            "xstack_schema_version": SCHEMA_VERSION,
+            "xstack_kind": kind,
+            "xstack_complete": False,
+            "partitions": sorted(partitions),
+            **(dict(attrs) if attrs else {}),
+        })
+        with dask_progress(description, enabled=progress):
+            for name, ds in partitions.items():
+                # stale encodings (chunks of a source store) must not override dask chunks
+                ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
+                                           consolidated=False)
+        root = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
+        root.attrs["xstack_complete"] = True
+    return Path(path)

@@ -1,0 +1,304 @@
+"""Model-visibility kernels: the paper's equation 1, in plain numpy + numba (no dask, no xarray).
+
+For rows (u, v, w) in metres, as stored in a MeasurementSet, and channels of frequency nu::
+
+    V(row, chan) = sum_k A_k(chan) S_k G_k(q, nu) exp(+2 pi i (u l_k + v m_k + w (n_k - 1)) nu / c)
+
+    G_k = exp(-pi^2 theta_k^2 q^2 nu^2 / (4 ln 2 c^2)),   q^2 = u^2 + v^2
+
+``theta_k`` is the full width at half maximum of a circular Gaussian source (radians); the
+paper's r_k is ``theta_k / (2 sqrt(ln 2))``. The paper divides by n_k; we do not: catalog
+fluxes are integrated flux densities, and the 1/n factor belongs to the image-plane brightness
+(it differs from 1 by < 1e-5 within a VLA L-band primary beam). See ``docs/sim.md``.
+
+Work that a call does not need is not done: no w-term arithmetic when ``n_minus_1`` is
+``None``; no Gaussian factor for point sources (``fwhm`` ``None`` or 0); no phasors at all for
+point sources at the phase centre (their visibilities are the constant sum of their fluxes).
+Which of these steps ran is counted in :data:`STEP_COUNTS` (see :func:`record_steps`) so the
+tests can prove it without timing.
+
+Speed: phases are float64. For uniformly spaced channels the phasor of channel k+1 is that of
+channel k times a per-row step phasor (one ``sincos`` pair per row and source instead of one
+per channel), re-synchronised exactly every :data:`RESYNC` channels; the error is a few ulp
+per channel (measured in the tests and ``docs/bench/simulate.md``). Gaussian factors use the
+matching second-order recurrence. Non-uniform channel layouts fall back to direct evaluation.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+from collections import Counter
+from collections.abc import Iterator
+from typing import Any
+
+import numba
+import numpy as np
+
+from xstack.coords import SPEED_OF_LIGHT
+
+#: Exact re-evaluation interval of the channel recurrence (bounds the accumulated error).
+RESYNC = 32
+#: Gaussian factors exp(-x) with x above this are dropped (exp(-69) < 1e-30 of the flux).
+GAUSS_CUTOFF = 69.0
+
+#: Counts of the computational steps run by the kernels (process-wide, thread-safe).
+STEP_COUNTS: Counter[str] = Counter()
+_LOCK = threading.Lock()
+
+
+def _count(*steps: str) -> None:
+    with _LOCK:
+        for s in steps:
+            STEP_COUNTS[s] += 1
+
+
+@contextlib.contextmanager
+def record_steps() -> Iterator[Counter[str]]:
+    """Context manager yielding a Counter of the kernel steps run inside the block.
+
+    Works across dask threads (the counts are process-wide; do not nest concurrent blocks).
+    Keys: ``"constant"`` (centre point sources), ``"phase"`` (off-centre phasors),
+    ``"w_term"``, ``"gaussian"``, ``"attenuation"``.
+    """
+    with _LOCK:
+        before = Counter(STEP_COUNTS)
+    result: Counter[str] = Counter()
+    try:
+        yield result
+    finally:
+        with _LOCK:
+            after = Counter(STEP_COUNTS)
+        after.subtract(before)
+        result.update({k: v for k, v in after.items() if v > 0})
+
+
+@numba.njit(nogil=True, cache=True)
+def _row_kernel(r: int, u: np.ndarray, v: np.ndarray, w: np.ndarray, has_w: bool,
+                freq: np.ndarray, uniform: bool, l: np.ndarray, m: np.ndarray,
+                nm1: np.ndarray, amp: np.ndarray, gcoef: np.ndarray, has_g: bool,
+                out: np.ndarray) -> None:
+    nchan = freq.size
+    nsrc = l.size
+    twopi_c = 2.0 * math.pi / 299792458.0
+    f0 = freq[0]
+    df = freq[1] - freq[0] if nchan > 1 else 0.0
+    ur = u[r]
+    vr = v[r]
+    wr = w[r] if has_w else 0.0
+    q2 = ur * ur + vr * vr
+    acc = np.zeros(nchan, dtype=np.complex128)
+    for k in range(nsrc):
+        # phase per Hz (float64 throughout)
+        if has_w:
+            dot = ur * l[k] + vr * m[k] + wr * nm1[k]
+        else:
+            dot = ur * l[k] + vr * m[k]
+        phase_per_hz = twopi_c * dot
+        gauss = has_g and gcoef[k] > 0.0
+        a = gcoef[k] * q2 if gauss else 0.0
+        if gauss and a * f0 * f0 > GAUSS_CUTOFF:
+            continue  # below 1e-30 of the flux in every channel (ascending frequencies)
+        if uniform:
+            ph = phase_per_hz * f0
+            p = complex(math.cos(ph), math.sin(ph))
+            sph = phase_per_hz * df
+            step = complex(math.cos(sph), math.sin(sph))
+            if gauss:
+                g = math.exp(-a * f0 * f0)
+                gr = math.exp(-a * (2.0 * f0 * df + df * df))
+                grr = math.exp(-2.0 * a * df * df)
+            else:
+                g = 1.0
+                gr = 1.0
+                grr = 1.0
+            for c in range(nchan):
+                if c > 0 and c % RESYNC == 0:
+                    # exact re-synchronisation bounds the recurrence error
+                    ph = phase_per_hz * freq[c]
+                    p = complex(math.cos(ph), math.sin(ph))
+                    if gauss:
+                        fc = freq[c]
+                        g = math.exp(-a * fc * fc)
+                        gr = math.exp(-a * (2.0 * fc * df + df * df))
+                acc[c] += (amp[k, c] * g) * p
+                p = p * step
+                if gauss:
+                    g = g * gr
+                    gr = gr * grr
+        else:
+            for c in range(nchan):
+                fc = freq[c]
+                ph = phase_per_hz * fc
+                val = amp[k, c] * complex(math.cos(ph), math.sin(ph))
+                if gauss:
+                    val = val * math.exp(-a * fc * fc)
+                acc[c] += val
+    for c in range(nchan):
+        out[r, c] += acc[c]
+
+
+@numba.njit(nogil=True, cache=True)
+def _kernel_serial(u, v, w, has_w, freq, uniform, l, m, nm1, amp, gcoef, has_g, out):
+    for r in range(u.size):
+        _row_kernel(r, u, v, w, has_w, freq, uniform, l, m, nm1, amp, gcoef, has_g, out)
+
+
+@numba.njit(nogil=True, parallel=True, cache=True)
+def _kernel_parallel(u, v, w, has_w, freq, uniform, l, m, nm1, amp, gcoef, has_g, out):
+    for r in numba.prange(u.size):
+        _row_kernel(r, u, v, w, has_w, freq, uniform, l, m, nm1, amp, gcoef, has_g, out)
+
+
+@numba.njit(nogil=True, cache=True)
+def _kernel_f32(u, v, freq, l, m, amp, out):
+    """float32 phases, direct sincos per channel, no w-term / Gaussian (benchmark path)."""
+    twopi_c = np.float32(2.0 * math.pi / 299792458.0)
+    for r in range(u.size):
+        ur = np.float32(u[r])
+        vr = np.float32(v[r])
+        for k in range(l.size):
+            pph = twopi_c * (ur * np.float32(l[k]) + vr * np.float32(m[k]))
+            for c in range(freq.size):
+                ph = pph * np.float32(freq[c])
+                out[r, c] += amp[k, c] * complex(math.cos(ph), math.sin(ph))
+
+
+def is_uniform(frequency: np.ndarray) -> bool:
+    """True if channels are equally spaced and ascending to rounding (a few ulp)."""
+    f = np.asarray(frequency, dtype=np.float64)
+    if f.size < 2:
+        return True
+    df = f[1] - f[0]
+    if df <= 0:
+        return False
+    k = np.arange(f.size)
+    return bool(np.all(np.abs(f - (f[0] + k * df)) <= 8 * np.finfo(float).eps * np.abs(f)))
+
+
+def gaussian_coefficient(fwhm: Any) -> np.ndarray:
+    """Per-source ``pi^2 theta^2 / (4 ln 2 c^2)`` (s^2/m^2) for FWHM ``theta`` in radians."""
+    th = np.asarray(fwhm, dtype=np.float64)
+    return (math.pi**2 / (4.0 * math.log(2.0) * SPEED_OF_LIGHT**2)) * th * th
+
+
+def model_visibilities(uvw: Any, frequency: Any, l: Any, m: Any, n_minus_1: Any, flux: Any,
+                       attenuation: Any = None, fwhm: Any = None,
+                       out_dtype: Any = np.complex128, *, parallel: bool = True) -> np.ndarray:
+    """Model visibilities of point and circular-Gaussian sources (the paper's equation 1).
+
+    Parameters
+    ----------
+    uvw
+        (nrow, 3) baseline coordinates in metres, as stored in an MS (u east, v north,
+        w towards the phase centre; baseline = antenna2 - antenna1).
+    frequency
+        (nchan,) channel frequencies, Hz.
+    l, m
+        (nsrc,) direction cosines relative to the phase centre
+        (:func:`xstack.coords.radec_to_lmn`).
+    n_minus_1
+        (nsrc,) ``n - 1`` (computed without cancellation), or ``None`` to leave out the
+        w-term entirely (no w arithmetic is done).
+    flux
+        (nsrc,) integrated flux densities, Jy (not divided by n; see the module docstring).
+    attenuation
+        (nsrc, nchan) primary-beam power attenuation per source and channel, or ``None`` (1).
+    fwhm
+        (nsrc,) Gaussian full width at half maximum, radians (0 = point source), or ``None``
+        for all point sources (no Gaussian factor is evaluated).
+    out_dtype
+        Output dtype (complex128 or complex64); the sum is always accumulated in complex128.
+    parallel
+        Use numba's threads over rows (set ``False`` inside dask tasks, which are already
+        parallel over chunks).
+
+    Returns
+    -------
+    numpy.ndarray
+        (nrow, nchan) complex visibilities, Jy.
+    """
+    uvw = np.asarray(uvw, dtype=np.float64)
+    if uvw.ndim != 2 or uvw.shape[1] != 3:
+        raise ValueError(f"uvw must have shape (nrow, 3), got {uvw.shape}")
+    freq = np.atleast_1d(np.asarray(frequency, dtype=np.float64))
+    l = np.atleast_1d(np.asarray(l, dtype=np.float64))
+    m = np.atleast_1d(np.asarray(m, dtype=np.float64))
+    flux = np.atleast_1d(np.asarray(flux, dtype=np.float64))
+    nsrc, nchan, nrow = l.size, freq.size, uvw.shape[0]
+    if m.size != nsrc or flux.size != nsrc:
+        raise ValueError("l, m and flux must have the same length")
+    nm1 = None if n_minus_1 is None else np.atleast_1d(np.asarray(n_minus_1, np.float64))
+    if nm1 is not None and nm1.size != nsrc:
+        raise ValueError("n_minus_1 must have the same length as l")
+
+    amp = np.broadcast_to(flux[:, None], (nsrc, nchan))
+    if attenuation is not None:
+        att = np.asarray(attenuation, dtype=np.float64)
+        if att.shape != (nsrc, nchan):
+            raise ValueError(f"attenuation must have shape (nsrc, nchan) = {(nsrc, nchan)}")
+        amp = amp * att
+        _count("attenuation")
+    amp = np.ascontiguousarray(amp, dtype=np.float64)
+    gcoef = np.zeros(nsrc)
+    if fwhm is not None:
+        th = np.broadcast_to(np.asarray(fwhm, dtype=np.float64), (nsrc,))
+        if np.any(th < 0) or not np.all(np.isfinite(th)):
+            raise ValueError("fwhm must be finite and >= 0")
+        gcoef = gaussian_coefficient(th)
+
+    out = np.zeros((nrow, nchan), dtype=np.complex128)
+    if nsrc == 0 or nrow == 0 or nchan == 0:
+        return out.astype(out_dtype, copy=False)
+
+    # point sources exactly at the phase centre: constant visibilities, no phasors
+    at_centre = (l == 0.0) & (m == 0.0)
+    if nm1 is not None:
+        at_centre &= nm1 == 0.0
+    const = at_centre & (gcoef == 0.0)
+    if const.any():
+        out += amp[const].sum(axis=0)[None, :]
+        _count("constant")
+    rest = ~const
+    if rest.any():
+        has_w = nm1 is not None and bool(np.any(nm1[rest] != 0.0))
+        has_g = bool(np.any(gcoef[rest] > 0.0))
+        # ascending channel order for the recurrences; undone on output
+        order = np.argsort(freq, kind="stable")
+        fs = np.ascontiguousarray(freq[order])
+        uniform = is_uniform(fs)
+        u = np.ascontiguousarray(uvw[:, 0])
+        v = np.ascontiguousarray(uvw[:, 1])
+        w = np.ascontiguousarray(uvw[:, 2])
+        nm1_r = np.ascontiguousarray(nm1[rest]) if has_w else np.zeros(int(rest.sum()))
+        tmp = np.zeros((nrow, nchan), dtype=np.complex128)
+        kern = _kernel_parallel if parallel else _kernel_serial
+        kern(u, v, w, has_w, fs, uniform, np.ascontiguousarray(l[rest]),
+             np.ascontiguousarray(m[rest]), nm1_r, np.ascontiguousarray(amp[rest][:, order]),
+             np.ascontiguousarray(gcoef[rest]), has_g, tmp)
+        inv = np.empty_like(order)
+        inv[order] = np.arange(nchan)
+        out += tmp[:, inv]
+        _count("phase", *(("w_term",) if has_w else ()), *(("gaussian",) if has_g else ()))
+    return out.astype(out_dtype, copy=False)
+
+
+def model_visibilities_float32(uvw: Any, frequency: Any, l: Any, m: Any, flux: Any,
+                               attenuation: Any = None) -> np.ndarray:
+    """Faster, less accurate point-source path: float32 phases, no w-term (benchmarks only).
+
+    Returns (nrow, nchan) complex64. Its error against :func:`model_visibilities` is
+    measured in ``benchmarks/bench_simulate.py``; it is never used by the simulator.
+    """
+    uvw = np.asarray(uvw, dtype=np.float64)
+    freq = np.asarray(frequency, dtype=np.float64)
+    flux = np.asarray(flux, dtype=np.float64)
+    amp = np.broadcast_to(flux[:, None], (flux.size, freq.size))
+    if attenuation is not None:
+        amp = amp * np.asarray(attenuation)
+    out = np.zeros((uvw.shape[0], freq.size), dtype=np.complex64)
+    _kernel_f32(np.ascontiguousarray(uvw[:, 0]), np.ascontiguousarray(uvw[:, 1]), freq,
+                np.asarray(l, np.float64), np.asarray(m, np.float64),
+                np.ascontiguousarray(amp, dtype=np.float32), out)
+    return out

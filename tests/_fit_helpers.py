@@ -1,0 +1,70 @@
+"""Test data for the fit and noise stages, built independently of xstack.sim/uvstack.
+
+Visibilities are written with plain numpy from the paper's equation 1 (sign convention of
+docs/conventions.md), so the tests do not depend on the code under test.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from xstack.schema import baseline_pairs, new_partition
+
+C = 299_792_458.0
+ARCSEC = np.pi / 180 / 3600
+GK = np.pi**2 / (4 * np.log(2))
+
+
+def uv_coverage(n_ant: int = 12, n_time: int = 20, extent_m: float = 20e3, seed: int = 0,
+                hours: float = 8.0, dec: float = -0.5236) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Earth-rotation uv tracks of a random array; returns (uvw (t, bl, 3), a1, a2)."""
+    rng = np.random.default_rng(seed)
+    # a Y-shaped array with logarithmic arm spacing, like the VLA
+    arms = np.repeat(np.radians([0.0, 120.0, 240.0]), int(np.ceil(n_ant / 3)))[:n_ant]
+    r = extent_m * np.geomspace(0.02, 1.0, n_ant) * rng.uniform(0.8, 1.0, n_ant)
+    xyz = np.stack([r * np.cos(arms), r * np.sin(arms), rng.normal(0, 5.0, n_ant)], axis=1)
+    a1, a2 = baseline_pairs(n_ant)
+    b = xyz[a2] - xyz[a1]
+    h = np.linspace(-hours / 2, hours / 2, n_time) * np.pi / 12
+    sd, cd = np.sin(dec), np.cos(dec)
+    uvw = np.empty((n_time, a1.size, 3))
+    for i, hh in enumerate(h):
+        sh, ch = np.sin(hh), np.cos(hh)
+        uvw[i, :, 0] = sh * b[:, 0] + ch * b[:, 1]
+        uvw[i, :, 1] = -sd * ch * b[:, 0] + sd * sh * b[:, 1] + cd * b[:, 2]
+        uvw[i, :, 2] = cd * ch * b[:, 0] - cd * sh * b[:, 1] + sd * b[:, 2]
+    return uvw, a1, a2
+
+
+def partition_from(vis: np.ndarray, weight: np.ndarray, uvw: np.ndarray, a1, a2, freq,
+                   phase_center=(1.0, -0.5236), flag=None, pols=("RR", "LL"),
+                   telescope="VLA", dish=25.0, attrs=None):
+    """Wrap numpy arrays into an xstack partition."""
+    n_time = vis.shape[0]
+    n_ant = int(max(a1.max(), a2.max()) + 1)
+    return new_partition(
+        visibility=vis, weight=weight.astype(np.float32),
+        flag=np.zeros(vis.shape, bool) if flag is None else flag, uvw=uvw,
+        time=5e9 + 10.0 * np.arange(n_time), antenna1=a1, antenna2=a2,
+        antenna_names=[f"A{i:02d}" for i in range(n_ant)],
+        antenna_positions=np.zeros((n_ant, 3)) + np.array([-1601185.0, -5041977.0, 3554875.0]),
+        dish_diameters=np.full(n_ant, dish), frequency=np.asarray(freq, float),
+        channel_width=np.full(len(freq), 1e6), polarization=list(pols),
+        phase_center=phase_center, telescope_name=telescope, integration_time=10.0,
+        attrs=attrs)
+
+
+def gaussian_stack(flux: float, fwhm_arcsec: float, sigma: float, seed: int, *,
+                   n_ant: int = 12, n_time: int = 20, freq=(1.3e9, 1.4e9, 1.5e9, 1.6e9),
+                   extent_m: float = 20e3, coverage_seed: int = 0):
+    """A 'stacked' partition: a circular Gaussian at the phase centre plus Gaussian noise of
+    rms ``sigma`` per real/imaginary part (weights 1/sigma^2)."""
+    uvw, a1, a2 = uv_coverage(n_ant, n_time, extent_m, seed=coverage_seed)
+    freq = np.asarray(freq, float)
+    q2 = (uvw[..., 0] ** 2 + uvw[..., 1] ** 2)[..., None] * (freq / C) ** 2
+    model = flux * np.exp(-GK * (fwhm_arcsec * ARCSEC) ** 2 * q2)
+    rng = np.random.default_rng(seed)
+    shape = q2.shape + (2,)
+    vis = model[..., None] + sigma * (rng.normal(size=shape) + 1j * rng.normal(size=shape))
+    weight = np.full(shape, 1.0 / sigma**2)
+    return partition_from(vis.astype(np.complex128), weight, uvw, a1, a2, freq)

@@ -1,0 +1,134 @@
+"""Reading xstack stores block by block for the measuring stages (fit, noise).
+
+Only Stokes I is used: the parallel hands (XX, YY or RR, LL; or a single ``I``), each with
+its own weight; flagged, non-finite or non-positive-weight visibilities get weight 0.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+
+from xstack.errors import XstackError
+
+PARALLEL_HANDS = ("XX", "YY", "RR", "LL", "I")
+
+#: Visibilities per block when a partition is not dask-backed.
+_BLOCK_VIS = 4_000_000
+
+
+def as_partitions(data: Any) -> list[tuple[str, xr.Dataset]]:
+    """Normalise a store path, DataTree, mapping of Datasets or a Dataset to partitions.
+
+    Objects with a ``stacked`` attribute (e.g. a ``StackResult``) are unwrapped.
+    """
+    from xstack.schema import iter_partitions, open_store, validate_partition
+
+    if hasattr(data, "stacked") and not isinstance(data, (xr.Dataset, xr.DataTree, Mapping)):
+        data = data.stacked
+    if isinstance(data, (str, os.PathLike)):
+        path = Path(data)
+        if not path.exists():
+            raise XstackError(f"{path}: no such store")
+        data = open_store(path)
+    if isinstance(data, xr.DataTree):
+        parts = list(iter_partitions(data))
+    elif isinstance(data, xr.Dataset):
+        parts = [("partition", data)]
+    elif isinstance(data, Mapping):
+        parts = [(str(k), v) for k, v in data.items()]
+    else:
+        raise XstackError(f"cannot read visibilities from a {type(data).__name__} "
+                          "(give a store path, DataTree, Dataset or dict of Datasets)")
+    if not parts:
+        raise XstackError("no partitions with visibilities")
+    for name, ds in parts:
+        validate_partition(ds, name)
+    return parts
+
+
+def parallel_hand_index(ds: xr.Dataset, name: str = "partition") -> np.ndarray:
+    """Indices of the parallel-hand correlations of a partition (Stokes I)."""
+    pols = [str(p).upper() for p in np.asarray(ds["polarization"].values)]
+    idx = np.array([i for i, p in enumerate(pols) if p in PARALLEL_HANDS], dtype=np.int64)
+    if idx.size == 0:
+        raise XstackError(f"{name}: no parallel-hand correlations for Stokes I "
+                          f"(polarizations {pols})")
+    return idx
+
+
+def time_blocks(ds: xr.Dataset) -> list[slice]:
+    """Slices along time matching the dask chunks (or ~4e6 visibilities per block)."""
+    ntime = ds.sizes["time"]
+    chunks = ds["VISIBILITY"].chunks
+    if chunks is not None:
+        bounds = np.concatenate([[0], np.cumsum(chunks[0])])
+    else:
+        per_time = max(1, ds.sizes["baseline_id"] * ds.sizes["frequency"] * ds.sizes["polarization"])
+        step = max(1, _BLOCK_VIS // per_time)
+        bounds = np.append(np.arange(0, ntime, step), ntime)
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def stokes_i_blocks(ds: xr.Dataset, name: str = "partition"
+                    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Yield ``(uvw, vis, weight)`` per time block of one partition.
+
+    Returns
+    -------
+    uvw : (nrow, 3) float64, metres
+    vis : (nrow, nchan, npar) complex128, Jy (parallel hands only)
+    weight : (nrow, nchan, npar) float64, 1/Jy^2; 0 where flagged or unusable
+    """
+    pidx = parallel_hand_index(ds, name)
+    nchan = ds.sizes["frequency"]
+    for sl in time_blocks(ds):
+        block = ds[["VISIBILITY", "WEIGHT", "FLAG", "UVW"]].isel(time=sl, polarization=pidx)
+        vis = np.asarray(block["VISIBILITY"].values, dtype=np.complex128)
+        wt = np.asarray(block["WEIGHT"].values, dtype=np.float64)
+        flag = np.asarray(block["FLAG"].values, dtype=bool)
+        uvw = np.asarray(block["UVW"].values, dtype=np.float64).reshape(-1, 3)
+        bad = flag | ~np.isfinite(vis) | ~(wt > 0) | ~np.isfinite(wt)
+        bad |= ~np.all(np.isfinite(uvw), axis=-1).reshape(vis.shape[:2])[..., None, None]
+        wt = np.where(bad, 0.0, wt)
+        vis = np.where(bad, 0.0, vis)
+        yield (uvw, vis.reshape(-1, nchan, pidx.size), wt.reshape(-1, nchan, pidx.size))
+
+
+def uv_range_mask(uvw: np.ndarray, frequency: np.ndarray, uvmin: tuple[float, str] | None,
+                  uvmax: tuple[float, str] | None) -> np.ndarray | None:
+    """Boolean (nrow, nchan) mask of visibilities inside [uvmin, uvmax]; None if no cut.
+
+    Limits are ``(value, "m"|"lambda")`` as returned by :func:`xstack.coords.parse_distance`;
+    the uv distance is q = sqrt(u^2 + v^2).
+    """
+    from xstack.coords import SPEED_OF_LIGHT
+
+    if uvmin is None and uvmax is None:
+        return None
+    q_m = np.hypot(uvw[:, 0], uvw[:, 1])[:, None]
+    q_lam = q_m * (np.asarray(frequency)[None, :] / SPEED_OF_LIGHT)
+    mask = np.ones((uvw.shape[0], len(frequency)), dtype=bool)
+    for limit, above in ((uvmin, True), (uvmax, False)):
+        if limit is None:
+            continue
+        value, unit = limit
+        q = q_m if unit == "m" else q_lam
+        mask &= (q >= value) if above else (q <= value)
+    return mask
+
+
+def parse_uv_limit(value: Any) -> tuple[float, str] | None:
+    """``None``, a number (metres), a string with units or a ``(value, unit)`` pair."""
+    from xstack.coords import parse_distance
+
+    if value is None:
+        return None
+    if isinstance(value, tuple) and len(value) == 2:
+        return float(value[0]), str(value[1])
+    return parse_distance(value)

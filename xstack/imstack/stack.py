@@ -1,0 +1,653 @@
+"""Image-stacking (paper §3.2): stamps around known positions, stacked pixel by pixel.
+
+The public entry point is :func:`imstack`. Stamps live in an :class:`xarray.DataArray` cube
+with dims ``source``, ``y``, ``x`` (coordinates in arcsec offsets from the stacking
+position); the numerical work is in :mod:`xstack.imstack.kernels` (plain numpy).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+from astropy.io import fits
+from astropy.table import Table
+
+from xstack import __version__
+from xstack._atomic import atomic_output, check_output
+from xstack._progress import progress_iter
+from xstack.beams import PrimaryBeam, standard_beam
+from xstack.coords import angular_separation, parse_distance, read_catalog
+from xstack.errors import XstackError
+from xstack.imstack import kernels
+from xstack.imstack.io import (
+    DISH_DIAMETERS,
+    ImageInfo,
+    output_paths,
+    psf_path_for,
+    read_image,
+    stamp_header,
+    write_fits_atomic,
+)
+
+METHODS = ("mean", "median")
+WEIGHTINGS = ("sigma2", "pb", "none", "column")
+SUBPIXEL = (False, "fourier", "spline")
+
+ImageSource = str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo
+
+
+@dataclass
+class ImstackResult:
+    """Result of :func:`imstack`.
+
+    Attributes
+    ----------
+    cube
+        Stamps, ``xr.DataArray`` (source, y, x) in the image unit (Jy/beam), NaN where the
+        stamp is off its image. One entry per (position, image) pair used; the coordinates
+        ``position`` (catalog row), ``image`` (index into ``images``), ``ra``, ``dec``
+        (deg), ``weight``, ``sigma`` (local noise, Jy/beam), ``pb`` (attenuation or NaN),
+        ``frac_x``, ``frac_y`` (offset of the position from the nearest pixel centre, pixels)
+        run along ``source``; ``x``, ``y`` are offsets in arcsec (x positive to the east for
+        a standard image with negative CDELT1, y to the north).
+    weights
+        float64 (n_catalog_rows, n_images): the weight W_k of each position's stamp in each
+        image, 0 where the position was not stacked from that image.
+    stacked
+        The stacked stamp, ``xr.DataArray`` (y, x), Jy/beam.
+    flux_jy
+        Value of the stacked stamp at its central pixel (the stacking position) -- the paper's
+        "peak" for point sources, without the upward bias of taking a noisy maximum. With
+        nearest-pixel alignment the stack is smeared by the pixelisation
+        (see ``pixelisation_factor``); with sub-pixel alignment it is not.
+    flux_err_jy
+        Noise of ``flux_jy`` propagated from the stamps' local noise sigma_k and weights:
+        sqrt(sum W_k^2 sigma_k^2) / sum W_k (paper eq. 5 for W_k = 1/sigma_k^2), times
+        sqrt(pi/2) for the median. ``stamp_rms_jy`` is the empirical alternative.
+    n_positions
+        Number of distinct catalog positions stacked.
+    psf_stamp
+        The PSF of the stack (y, x) if a PSF image was found or given, else None: the
+        weighted mean of each stamp's PSF, including for nearest-pixel alignment the
+        smearing by each position's sub-pixel offset (its central value is then the expected
+        pixelisation factor of the dirty beam).
+    """
+
+    cube: xr.DataArray
+    weights: np.ndarray
+    stacked: xr.DataArray
+    flux_jy: float
+    flux_err_jy: float
+    n_positions: int
+    psf_stamp: xr.DataArray | None = None
+    weight_sum: xr.DataArray | None = None
+    n_stamps: int = 0
+    stamp_rms_jy: float = float("nan")
+    peak_jy: float = float("nan")
+    method: str = "mean"
+    weighting: str = "sigma2"
+    subpixel: str | bool = False
+    beam_arcsec: tuple[float, float, float] | None = None
+    mask_radius_arcsec: float = float("nan")
+    pixel_arcsec: tuple[float, float] = (float("nan"), float("nan"))
+    pixelisation_factor: float | None = None
+    filter_lowfreq: Any = None
+    skipped_rows: list[int] = field(default_factory=list)
+    outputs: dict[str, str] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly summary (what ``xstack imstack --json`` prints)."""
+        def num(v: Any) -> float | None:
+            return None if v is None or not np.isfinite(v) else float(v)
+
+        return {
+            "flux_jy": num(self.flux_jy),
+            "flux_err_jy": num(self.flux_err_jy),
+            "n_positions": int(self.n_positions),
+            "n_stamps": int(self.n_stamps),
+            "method": self.method,
+            "weighting": self.weighting,
+            "subpixel": self.subpixel or "nearest",
+            "stamp_rms_jy": num(self.stamp_rms_jy),
+            "peak_jy": num(self.peak_jy),
+            "stamp_size": int(self.stacked.shape[0]),
+            "pixel_arcsec": [num(p) for p in self.pixel_arcsec],
+            "beam_arcsec": list(self.beam_arcsec) if self.beam_arcsec else None,
+            "mask_radius_arcsec": num(self.mask_radius_arcsec),
+            "pixelisation_factor": num(self.pixelisation_factor),
+            "psf": self.psf_stamp is not None,
+            "filter_lowfreq": self.filter_lowfreq,
+            "skipped_rows": list(self.skipped_rows),
+            "outputs": dict(self.outputs),
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------
+
+def _positions(positions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(ra, dec) in degrees and the optional catalog weight column."""
+    if isinstance(positions, (str, os.PathLike, Table)):
+        table = read_catalog(positions)
+        w = np.asarray(table["weight"], dtype=np.float64) if "weight" in table.colnames else None
+        return np.asarray(table["ra"], np.float64), np.asarray(table["dec"], np.float64), w
+    arr = np.asarray(positions, dtype=np.float64)
+    if arr.ndim == 1 and arr.size == 2:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
+        raise XstackError("positions: give a catalog file/Table or an (N, 2) array of (ra, dec) deg")
+    if not np.isfinite(arr).all() or np.any(np.abs(arr[:, 1]) > 90):
+        raise XstackError("positions: non-finite value or |dec| > 90 deg")
+    return np.mod(arr[:, 0], 360.0), arr[:, 1], None
+
+
+def _as_list(value: Any, n: int, what: str) -> list[Any]:
+    if isinstance(value, (list, tuple)):
+        if len(value) != n:
+            raise XstackError(f"{what}: got {len(value)} entries for {n} images")
+        return list(value)
+    return [value] * n
+
+
+def _primary_beam_values(info: ImageInfo, pb: Any, ra: np.ndarray, dec: np.ndarray) -> np.ndarray | None:
+    """Primary-beam attenuation of ``info``'s pointing at the positions, or None if unknown."""
+    if pb is None:
+        tel = (info.telescope or "").upper()
+        if tel not in DISH_DIAMETERS or info.frequency_hz is None:
+            return None
+        pb = standard_beam(tel, DISH_DIAMETERS[tel])
+    if isinstance(pb, str) and pb in ("airy", "gaussian", "vla", "none"):
+        tel = (info.telescope or "").upper()
+        if pb == "none":
+            return np.ones_like(ra)
+        if tel not in DISH_DIAMETERS:
+            raise XstackError(f"{info.name}: primary beam {pb!r} needs a known TELESCOP "
+                              f"(got {info.telescope!r}); give a PB FITS image instead")
+        pb = standard_beam(tel, DISH_DIAMETERS[tel], model=pb)
+    if isinstance(pb, PrimaryBeam):
+        if info.frequency_hz is None:
+            raise XstackError(f"{info.name}: no frequency in the header for the primary beam; "
+                              "give a PB FITS image instead")
+        theta = angular_separation(np.radians(ra), np.radians(dec),
+                                   np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1]))
+        return np.asarray(pb(theta, info.frequency_hz), dtype=np.float64)
+    # a primary-beam image: nearest pixel at each position, 0 off the image
+    pbimg = read_image(pb, name=f"primary beam {pb}")
+    px, py = pbimg.wcs.world_to_pixel_values(ra, dec)
+    ix, iy = kernels.nearest_pixel(np.nan_to_num(px, nan=-1e9)), kernels.nearest_pixel(
+        np.nan_to_num(py, nan=-1e9))
+    ny, nx = pbimg.shape
+    ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+    out = np.zeros(ra.size)
+    out[ok] = pbimg.data[iy[ok], ix[ok]]
+    return np.nan_to_num(out, nan=0.0)
+
+
+def _check_grids(infos: list[ImageInfo]) -> np.ndarray:
+    """All images must share one pixel grid orientation and scale so stamps line up."""
+    ref = infos[0].pixel_matrix_deg
+    for info in infos[1:]:
+        if not np.allclose(info.pixel_matrix_deg, ref, rtol=1e-6, atol=1e-12 * np.abs(ref).max()):
+            raise XstackError(f"{info.name}: pixel scale/orientation differs from {infos[0].name}; "
+                              "stack images with the same cell size and orientation")
+    return ref
+
+
+def _filter_mask(filter_lowfreq: Any, size: int, pix_x_arcsec: float, pix_y_arcsec: float,
+                 freq_hz: float | None) -> np.ndarray | None:
+    """The Fourier cells to zero for ``filter_lowfreq`` (None: no filter)."""
+    if filter_lowfreq is None or filter_lowfreq is False:
+        return None
+    if isinstance(filter_lowfreq, (int, np.integer)) and not isinstance(filter_lowfreq, bool):
+        n = int(filter_lowfreq)
+        if n < 1 or n % 2 == 0 or n >= size:
+            raise XstackError(f"filter_lowfreq={n}: give an odd number of central Fourier cells "
+                              f"smaller than the stamp ({size})")
+        return kernels.lowfreq_mask((size, size), n_central=n)
+    value, unit = parse_distance(filter_lowfreq)
+    if unit == "m":
+        if freq_hz is None:
+            raise XstackError("filter_lowfreq in metres needs the image frequency; give it in "
+                              "klambda or as a number of central Fourier cells")
+        value = value * freq_hz / 299_792_458.0
+    # one Fourier cell of a stamp is 1 / (size * pixel) wavelengths (pixel in radians)
+    cell = 1.0 / (size * np.radians(max(pix_x_arcsec, pix_y_arcsec) / 3600.0))
+    return kernels.lowfreq_mask((size, size), q_min_cells=value / cell)
+
+
+def _mean_position(ra: np.ndarray, dec: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """Weighted mean direction (deg) of the positions (unit-vector average)."""
+    r, d = np.radians(ra), np.radians(dec)
+    v = np.stack([np.cos(d) * np.cos(r), np.cos(d) * np.sin(r), np.sin(d)]) @ w
+    return float(np.degrees(np.arctan2(v[1], v[0])) % 360.0), float(np.degrees(np.arctan2(
+        v[2], np.hypot(v[0], v[1]))))
+
+
+# ---------------------------------------------------------------------------------------------
+# public API
+# ---------------------------------------------------------------------------------------------
+
+def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stamp_size: int = 64,
+            method: str = "mean", weighting: str = "sigma2", subpixel: str | bool = False,
+            pb: Any = None, pbcor: bool = False, psf: Any = None,
+            beam_mask_arcsec: float | None = None, filter_lowfreq: int | str | None = None,
+            skip_outside: bool = False, out: str | os.PathLike | None = None,
+            cube_format: str = "zarr", plot: bool = True, overwrite: bool = False,
+            progress: bool = False) -> ImstackResult:
+    """Stack image stamps at known positions (Lindroos et al. 2015, §3.2).
+
+    Parameters
+    ----------
+    images
+        One image or a sequence (e.g. mosaic pointings): FITS paths, astropy image HDUs or
+        :class:`~xstack.imstack.io.ImageInfo`. Any celestial WCS; degenerate Stokes/frequency
+        axes are dropped. All images must share cell size and orientation.
+    positions
+        Catalog path or :class:`~astropy.table.Table` (columns ``ra``, ``dec`` in degrees,
+        optional ``weight``), or an (N, 2) array of (ra, dec) in degrees.
+    stamp_size
+        Stamp side in pixels; the stacking position is at index ``stamp_size // 2``.
+    method
+        ``"mean"`` (weighted mean per pixel, NaN ignored) or ``"median"`` (per-pixel median
+        of all stamps, unweighted).
+    weighting
+        ``"sigma2"``: W_k = 1/sigma_k^2, sigma_k the std of the stamp outside a central
+        circle of radius ``beam_mask_arcsec`` (default: the beam's major axis BMAJ), paper
+        eq. 3. ``"pb"``: sigma_k = 1/A(position), W_k = A^2 (the paper's ALMA weights).
+        ``"none"``: W_k = 1. ``"column"``: the catalog's ``weight`` column.
+    subpixel
+        ``False`` (nearest pixel, as in the paper), ``"fourier"`` or ``"spline"`` (shift each
+        stamp so the position is exactly at the centre; removes the pixelisation loss).
+    pb
+        Primary beam for ``weighting="pb"`` and ``pbcor``: a :class:`~xstack.beams.PrimaryBeam`,
+        a model name, a PB FITS image, or a list with one per image. Default: the telescope's
+        standard beam from TELESCOP and the image frequency, centred on OBSRA/OBSDEC or the
+        WCS reference position. Positions where A < the beam's cutoff are not stacked from
+        that image.
+    pbcor
+        Divide each stamp by A(position): for images that are not primary-beam corrected
+        (e.g. single mosaic pointings), so the stack estimates the true flux density.
+    psf
+        PSF image(s) (FITS path/HDU, one or one per image). Default: ``X.psf.fits`` beside
+        ``X.fits`` where it exists.
+    beam_mask_arcsec
+        Radius of the central mask for sigma_k and the stamp rms (default BMAJ; 5 pixels if
+        the image has no beam).
+    filter_lowfreq
+        The §5.3 low-spatial-frequency FFT filter of the stacked stamp (and its PSF): an odd
+        int n zeroes the central n x n Fourier cells (paper: 3); a distance ("4500m",
+        "20klambda") zeroes every cell with uv distance below it.
+    skip_outside
+        Skip positions outside every image instead of raising (their rows are reported).
+    out
+        ``OUT.fits``: also write the stacked stamp (FITS, with ``PSF`` and ``WEIGHTS``
+        extensions), the cube (``OUT.cube.zarr`` or ``OUT.cube.fits``) and ``OUT.png``.
+        All atomic; nothing is written if anything fails.
+    cube_format
+        ``"zarr"`` or ``"fits"``.
+    plot
+        Write ``OUT.png`` (with ``out``).
+    overwrite
+        Replace existing outputs.
+    progress
+        Progress bar on stderr.
+
+    Returns
+    -------
+    ImstackResult
+
+    Raises
+    ------
+    XstackError
+        Bad option, image without celestial WCS, stamp larger than an image, positions
+        outside every image (unless ``skip_outside``), existing outputs.
+    """
+    # ---- options (before any work) ----------------------------------------------------------
+    if method not in METHODS:
+        raise XstackError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if weighting not in WEIGHTINGS:
+        raise XstackError(f"weighting must be one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
+    if subpixel in (None, "none", "nearest"):
+        subpixel = False
+    if subpixel not in SUBPIXEL:
+        raise XstackError(f"subpixel must be fourier or spline (or False), got {subpixel!r}")
+    if isinstance(stamp_size, bool) or int(stamp_size) != stamp_size or stamp_size < 5:
+        raise XstackError(f"stamp size must be an integer >= 5 pixels, got {stamp_size!r}")
+    stamp_size = int(stamp_size)
+    if cube_format not in ("zarr", "fits"):
+        raise XstackError(f"cube format must be zarr or fits, got {cube_format!r}")
+    paths = None
+    if out is not None:
+        paths = output_paths(out, cube_format)
+        if not plot:
+            paths.pop("png")
+        for p in paths.values():
+            check_output(p, overwrite)
+
+    # ---- inputs -----------------------------------------------------------------------------
+    ra, dec, cat_w = _positions(positions)
+    if weighting == "column" and cat_w is None:
+        raise XstackError("weighting 'column' needs a catalog with a weight column")
+    if isinstance(images, (str, os.PathLike, fits.ImageHDU, fits.PrimaryHDU, ImageInfo)):
+        images = [images]
+    images = list(images)
+    if not images:
+        raise XstackError("no images given")
+    infos = [read_image(img, name=None if isinstance(img, (str, os.PathLike)) else f"image[{i}]")
+             for i, img in enumerate(images)]
+    for info in infos:
+        ny, nx = info.shape
+        if stamp_size > min(ny, nx):
+            raise XstackError(f"{info.name}: stamp size {stamp_size} is larger than the image "
+                              f"({nx} x {ny} pixels)")
+    pixm = _check_grids(infos)
+    # signed arcsec per pixel along x and y (x: the longitude axis)
+    sx, sy = pixm[0, 0] * 3600.0, pixm[1, 1] * 3600.0
+    pix_x, pix_y = float(np.hypot(pixm[0, 0], pixm[1, 0]) * 3600), float(np.hypot(pixm[0, 1],
+                                                                                   pixm[1, 1]) * 3600)
+    beam = next((i.beam_arcsec for i in infos if i.beam_arcsec), None)
+    pbs = _as_list(pb, len(infos), "pb")
+    psfs = _as_list(psf, len(infos), "psf")
+
+    # ---- which positions each image sees ----------------------------------------------------
+    n_pos = ra.size
+    seen = np.zeros((n_pos, len(infos)), dtype=bool)
+    pix = np.full((n_pos, len(infos), 2), np.nan)
+    atten = np.full((n_pos, len(infos)), np.nan)
+    for i, info in enumerate(infos):
+        px, py = info.wcs.world_to_pixel_values(ra, dec)
+        px, py = np.asarray(px, np.float64), np.asarray(py, np.float64)
+        ny, nx = info.shape
+        inside = np.isfinite(px) & np.isfinite(py) & (px >= -0.5) & (px < nx - 0.5) \
+            & (py >= -0.5) & (py < ny - 0.5)
+        ix, iy = kernels.nearest_pixel(np.where(inside, px, 0)), kernels.nearest_pixel(
+            np.where(inside, py, 0))
+        inside &= np.isfinite(info.data[iy, ix])  # blanked centre: not covered by this image
+        if weighting == "pb" or pbcor:
+            a = _primary_beam_values(info, pbs[i], ra, dec)
+            if a is None:
+                raise XstackError(f"{info.name}: no primary beam known (TELESCOP "
+                                  f"{info.telescope!r}, frequency {info.frequency_hz}); give pb=")
+            cutoff = pbs[i].cutoff if isinstance(pbs[i], PrimaryBeam) else 0.1
+            inside &= a >= cutoff
+            atten[:, i] = a
+        seen[:, i] = inside
+        pix[:, i, 0], pix[:, i, 1] = px, py
+    unseen = np.flatnonzero(~seen.any(axis=1))
+    if unseen.size and not skip_outside:
+        k = int(unseen[0])
+        raise XstackError(f"{unseen.size} of {n_pos} positions are outside every image, e.g. row "
+                          f"{k + 1} (ra={ra[k]:.6f}, dec={dec[k]:.6f} deg); remove them or skip_outside")
+    if unseen.size == n_pos:
+        raise XstackError("no position lies inside any image")
+
+    # ---- stamps -----------------------------------------------------------------------------
+    blocks, meta = [], []
+    for i in progress_iter(range(len(infos)), "imstack: stamps", progress and len(infos) > 1):
+        rows = np.flatnonzero(seen[:, i])
+        if rows.size == 0:
+            continue
+        st, fx, fy = kernels.align_stamps(infos[i].data, pix[rows, i, 0], pix[rows, i, 1],
+                                          stamp_size, subpixel)
+        if pbcor:
+            st /= atten[rows, i][:, None, None]
+        blocks.append(st)
+        meta.append((rows, np.full(rows.size, i), fx, fy))
+    stamps = np.concatenate(blocks)
+    rows = np.concatenate([m[0] for m in meta])
+    img_idx = np.concatenate([m[1] for m in meta])
+    frac_x = np.concatenate([m[2] for m in meta])
+    frac_y = np.concatenate([m[3] for m in meta])
+    pb_k = atten[rows, img_idx]
+
+    # ---- local noise and weights ------------------------------------------------------------
+    if beam_mask_arcsec is None:
+        radius = beam[0] if beam else 5.0 * max(pix_x, pix_y)
+    else:
+        radius = float(beam_mask_arcsec)
+        if not radius > 0:
+            raise XstackError(f"beam mask radius must be positive, got {beam_mask_arcsec}")
+    mask = kernels.central_mask(stamp_size, radius / pix_x, radius / pix_y)
+    if mask.all():
+        raise XstackError(f"stamp of {stamp_size} pixels is inside the central mask of radius "
+                          f"{radius:.3g} arcsec: use a larger stamp")
+    sigma = kernels.local_sigma(stamps, mask)
+    if weighting == "sigma2":
+        with np.errstate(divide="ignore"):
+            w = np.where(np.isfinite(sigma) & (sigma > 0), 1.0 / sigma**2, 0.0)
+    elif weighting == "pb":
+        w = np.nan_to_num(pb_k, nan=0.0) ** 2
+    elif weighting == "column":
+        w = cat_w[rows]
+    else:
+        w = np.ones(rows.size)
+    if not np.any(w > 0):
+        raise XstackError("every stamp has zero weight (no usable noise estimate?)")
+
+    # ---- aggregation ------------------------------------------------------------------------
+    if method == "mean":
+        stacked, wsum = kernels.weighted_nanmean(stamps, w)
+    else:
+        use = w > 0
+        stacked, wsum = kernels.nanmedian_stack(stamps[use])
+    c = stamp_size // 2
+    centre_ok = np.isfinite(stamps[:, c, c]) & (w > 0)
+    # the stacked value's noise from the stamps' local noise (eq. 5 / 6)
+    sig_for_err = sigma if weighting != "pb" else np.where(np.isfinite(sigma), sigma, np.nan)
+    flux_err = kernels.weighted_error(sig_for_err[centre_ok], w[centre_ok] if method == "mean"
+                                      else np.ones(int(centre_ok.sum())))
+    if method == "median":
+        flux_err *= kernels.MEDIAN_NOISE_FACTOR
+
+    # ---- PSF of the stack -------------------------------------------------------------------
+    psf_stack = _psf_stack(infos, psfs, stamp_size, img_idx, frac_x, frac_y, w, subpixel)
+
+    # ---- low-spatial-frequency filter (paper §5.3) ------------------------------------------
+    fmask = _filter_mask(filter_lowfreq, stamp_size, pix_x, pix_y, infos[0].frequency_hz)
+    if fmask is not None:
+        stacked = kernels.lowfreq_filter(stacked, fmask)
+        if psf_stack is not None:
+            psf_stack = kernels.lowfreq_filter(psf_stack, fmask)
+
+    flux = float(stacked[c, c])
+    outside = stacked[~mask]
+    stamp_rms = float(np.nanstd(outside)) if np.isfinite(outside).sum() > 1 else float("nan")
+    inner = np.where(mask, stacked, np.nan)
+    peak = float(np.nanmax(inner)) if np.isfinite(inner).any() else float("nan")
+    pixfac = None
+    if beam and not subpixel:
+        pixfac = kernels.pixelisation_factor(beam[0], beam[1], beam[2], pix_x, pix_y)
+
+    # ---- xarray objects ---------------------------------------------------------------------
+    off = kernels.offsets_grid(stamp_size)
+    # x = offset along the image x axis as Delta(RA) cos(dec) (east positive; it decreases with
+    # the pixel index for the usual CDELT1 < 0), y = offset north
+    xcoord = xr.Variable("x", off * sx, attrs={"units": "arcsec",
+                         "long_name": "offset east (Delta RA cos Dec) along the image x axis"})
+    ycoord = xr.Variable("y", off * sy, attrs={"units": "arcsec",
+                         "long_name": "offset north along the image y axis"})
+    bunit = infos[0].bunit or "Jy/beam"
+    cube = xr.DataArray(
+        stamps, dims=("source", "y", "x"),
+        coords={"x": xcoord, "y": ycoord,
+                "position": ("source", rows.astype(np.int64)),
+                "image": ("source", img_idx.astype(np.int64)),
+                "ra": ("source", ra[rows], {"units": "deg"}),
+                "dec": ("source", dec[rows], {"units": "deg"}),
+                "weight": ("source", w),
+                "sigma": ("source", sigma, {"units": bunit}),
+                "pb": ("source", pb_k),
+                "frac_x": ("source", frac_x, {"units": "pixel"}),
+                "frac_y": ("source", frac_y, {"units": "pixel"})},
+        name="stamps", attrs={"units": bunit, "method": method, "weighting": weighting,
+                              "subpixel": str(subpixel or "nearest"), "stamp_size": stamp_size})
+    weights = np.zeros((n_pos, len(infos)))
+    weights[rows, img_idx] = w
+    stacked_da = xr.DataArray(stacked, dims=("y", "x"), coords={"x": xcoord, "y": ycoord},
+                              name="stacked", attrs={"units": bunit})
+    wsum_da = xr.DataArray(wsum, dims=("y", "x"), coords={"x": xcoord, "y": ycoord},
+                           name="weight_sum" if method == "mean" else "n_stamps")
+    psf_da = None if psf_stack is None else xr.DataArray(
+        psf_stack, dims=("y", "x"), coords={"x": xcoord, "y": ycoord}, name="psf")
+    n_positions = int(np.unique(rows[w > 0]).size)
+    result = ImstackResult(
+        cube=cube, weights=weights, stacked=stacked_da, flux_jy=flux, flux_err_jy=flux_err,
+        n_positions=n_positions, psf_stamp=psf_da, weight_sum=wsum_da, n_stamps=int(np.sum(w > 0)),
+        stamp_rms_jy=stamp_rms, peak_jy=peak, method=method, weighting=weighting,
+        subpixel=subpixel, beam_arcsec=beam, mask_radius_arcsec=radius, pixel_arcsec=(pix_x, pix_y),
+        pixelisation_factor=pixfac, filter_lowfreq=filter_lowfreq,
+        skipped_rows=[int(k) + 1 for k in unseen])
+    if paths is not None:
+        ra0, dec0 = _mean_position(ra[rows], dec[rows], np.where(w > 0, w, 0) / np.sum(w))
+        _write_outputs(result, paths, pixm, ra0, dec0, overwrite)
+    return result
+
+
+def _psf_stamp_for(info: ImageInfo, psf: Any, stamp_size: int) -> np.ndarray | None:
+    """A finite PSF stamp with margin (odd size) centred on the PSF peak, or None."""
+    if psf is None:
+        if info.path is None:
+            return None
+        candidate = psf_path_for(info.path)
+        if not candidate.exists():
+            return None
+        psf = candidate
+    pinfo = read_image(psf, name=f"PSF {psf}")
+    if not np.allclose(pinfo.pixel_matrix_deg, info.pixel_matrix_deg, rtol=1e-6,
+                       atol=1e-12 * np.abs(info.pixel_matrix_deg).max()):
+        raise XstackError(f"{pinfo.name}: PSF pixel grid differs from the image {info.name}")
+    data = np.nan_to_num(pinfo.data, nan=0.0)
+    py, px = np.unravel_index(np.argmax(data), data.shape)
+    margin = kernels.SHIFT_MARGIN + ((stamp_size + 2 * kernels.SHIFT_MARGIN + 1) % 2)
+    st, _, _ = kernels.extract_stamps(data, np.array([px]), np.array([py]), stamp_size, margin)
+    return np.nan_to_num(st[0], nan=0.0)
+
+
+def _psf_stack(infos: list[ImageInfo], psfs: list[Any], stamp_size: int, img_idx: np.ndarray,
+               frac_x: np.ndarray, frac_y: np.ndarray, w: np.ndarray, subpixel: Any) -> np.ndarray | None:
+    """Weighted-mean PSF of the stamps (with each stamp's sub-pixel smear if nearest-pixel)."""
+    padded = {}
+    for i, info in enumerate(infos):
+        if np.any(img_idx == i):
+            p = _psf_stamp_for(info, psfs[i], stamp_size)
+            if p is None:
+                return None  # some stamps have no PSF: the stack's PSF is unknown
+            padded[i] = p
+    if not padded:
+        return None
+    margin = (next(iter(padded.values())).shape[0] - stamp_size) // 2
+    total = np.zeros((stamp_size, stamp_size))
+    wtot = 0.0
+    for i, p in padded.items():
+        sel = (img_idx == i) & (w > 0)
+        if not sel.any():
+            continue
+        if subpixel:
+            shifted = p[None] * 1.0
+            wi = np.array([w[sel].sum()])
+        else:
+            # the stacked source is the PSF displaced by each position's offset from its pixel:
+            # average in chunks to bound memory
+            acc = np.zeros_like(p)
+            idx = np.flatnonzero(sel)
+            for s in range(0, idx.size, 256):
+                part = idx[s:s + 256]
+                sh = kernels.fourier_shift(np.broadcast_to(p, (part.size, *p.shape)),
+                                           frac_y[part], frac_x[part])
+                acc += np.einsum("k,kyx->yx", w[part], sh)
+            shifted = acc[None]
+            wi = np.array([1.0])
+        total += (shifted * wi[:, None, None]).sum(axis=0)[margin:margin + stamp_size,
+                                                             margin:margin + stamp_size]
+        wtot += float(w[sel].sum())
+    return total / wtot if wtot > 0 else None
+
+
+def _header_cards(result: ImstackResult) -> list[tuple[str, Any, str]]:
+    def f(v: Any) -> Any:
+        return float(v) if v is not None and np.isfinite(v) else "NaN"
+
+    return [
+        ("BUNIT", str(result.stacked.attrs.get("units", "Jy/beam")), "unit of the stacked stamp"),
+        ("NSTACK", result.n_positions, "number of stacked positions"),
+        ("NSTAMP", result.n_stamps, "number of stamps (position x image)"),
+        ("STMETHOD", result.method, "stacking: mean (weighted) or median"),
+        ("STWEIGHT", result.weighting, "stamp weights: sigma2, pb, none, column"),
+        ("STSUBPIX", str(result.subpixel or "nearest"), "alignment: nearest, fourier, spline"),
+        ("STFLUX", f(result.flux_jy), "[Jy/beam] stacked value at the centre pixel"),
+        ("STFLUXER", f(result.flux_err_jy), "[Jy/beam] noise of STFLUX from sigma_k (eq. 5)"),
+        ("STRMS", f(result.stamp_rms_jy), "[Jy/beam] rms of the stack outside the mask"),
+        ("STPEAK", f(result.peak_jy), "[Jy/beam] maximum inside the central mask"),
+        ("STMASKR", f(result.mask_radius_arcsec), "[arcsec] radius of the central mask"),
+        ("STPIXFAC", f(result.pixelisation_factor), "expected nearest-pixel peak factor (Gauss)"),
+        ("STFILTER", str(result.filter_lowfreq), "low-spatial-frequency FFT filter"),
+        ("ORIGIN", f"xstack {__version__}", ""),
+    ]
+
+
+def _write_outputs(result: ImstackResult, paths: dict[str, Path], pixm: np.ndarray, ra0: float,
+                   dec0: float, overwrite: bool) -> None:
+    size = result.stacked.shape[0]
+    header = stamp_header(ra0, dec0, size, pixm / 1.0)
+    if result.beam_arcsec:
+        header["BMAJ"] = result.beam_arcsec[0] / 3600.0
+        header["BMIN"] = result.beam_arcsec[1] / 3600.0
+        header["BPA"] = result.beam_arcsec[2]
+    for key, value, comment in _header_cards(result):
+        header[key] = (value, comment)
+    header["HISTORY"] = "xstack imstack: reference pixel = the stacking position; CRVAL is the"
+    header["HISTORY"] = "mean stacking position (nominal). Offsets are in the input pixel grid."
+    hdus = [fits.PrimaryHDU(result.stacked.values.astype(np.float64), header=header)]
+    if result.psf_stamp is not None:
+        ph = header.copy()
+        for key in ("BUNIT", "STFLUX", "STFLUXER", "STRMS", "STPEAK"):
+            ph.remove(key, ignore_missing=True)
+        ph["EXTNAME"] = "PSF"
+        ph["PSFSMEAR"] = (not result.subpixel, "includes the nearest-pixel smear of the stack")
+        hdus.append(fits.ImageHDU(result.psf_stamp.values.astype(np.float64), header=ph, name="PSF"))
+    wh = fits.Header()
+    wh["EXTNAME"] = "WEIGHTS"
+    wh["CONTENT"] = ("sum of weights" if result.method == "mean" else "number of stamps",
+                     "per-pixel coverage of the stack")
+    hdus.append(fits.ImageHDU(result.weight_sum.values.astype(np.float64), header=wh, name="WEIGHTS"))
+    hdul = fits.HDUList(hdus)
+
+    with contextlib.ExitStack() as stack:
+        tmp_fits = stack.enter_context(atomic_output(paths["fits"], overwrite))
+        tmp_cube = stack.enter_context(atomic_output(paths["cube"], overwrite))
+        tmp_png = stack.enter_context(atomic_output(paths["png"], overwrite)) if "png" in paths else None
+        write_fits_atomic(hdul, tmp_fits)
+        _write_cube(result, tmp_cube, paths["cube"].suffix == ".zarr", header)
+        if tmp_png is not None:
+            from xstack.imstack.plot import plot_stack
+
+            plot_stack(result, tmp_png)
+    result.outputs = {k: str(v) for k, v in paths.items()}
+
+
+def _write_cube(result: ImstackResult, tmp: Path, as_zarr: bool, header: fits.Header) -> None:
+    cube = result.cube
+    if as_zarr:
+        ds = xr.Dataset({"stamps": cube, "stacked": result.stacked})
+        ds.attrs.update({k: (v if isinstance(v, (int, float, str)) else str(v))
+                         for k, v, _ in _header_cards(result)})
+        ds.to_zarr(tmp, mode="w", consolidated=False)
+        return
+    h = header.copy()
+    h["CTYPE3"] = ("STAMP", "stamp index (see the STAMPS table)")
+    h["CRPIX3"], h["CRVAL3"], h["CDELT3"] = 1.0, 0.0, 1.0
+    cols = Table({name: np.asarray(cube.coords[name].values) for name in
+                  ("position", "image", "ra", "dec", "weight", "sigma", "pb", "frac_x", "frac_y")})
+    cols["position"] += 1  # 1-based catalog rows in the file
+    hdul = fits.HDUList([fits.PrimaryHDU(cube.values.astype(np.float32), header=h),
+                         fits.table_to_hdu(cols)])
+    hdul[1].name = "STAMPS"
+    write_fits_atomic(hdul, tmp)

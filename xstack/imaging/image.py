@@ -438,7 +438,9 @@ class Imager:
                                     "XSSUMW": stats["sum_weights"], "XSWTERM": self.wterm,
                                     "XSEPSIL": self.epsilon, "XSPBCOR": bool(pbcor)})
         pb = None
+        extra: dict[str, Any] = {}
         if pbcor:
+            extra["uncorrected"] = image
             pb, cutoff = self.primary_beam(stats["frequency"])
             image = np.where(pb >= max(cutoff, 1e-6), image / np.where(pb > 0, pb, 1.0), np.nan)
         return ImageResult(
@@ -447,7 +449,7 @@ class Imager:
             phase_center=self.phase_center, cell_arcsec=self.cell_arcsec,
             weighting=self.weighting, robust=self.robust, pb=pb,
             n_visibilities=stats["n_visibilities"], partitions=tuple(n for n, _ in self.parts),
-            telescope=telescope, bandwidth=stats.get("bandwidth", 0.0))
+            telescope=telescope, bandwidth=stats.get("bandwidth", 0.0), extra=extra)
 
 
 def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weighting: str = "natural",

@@ -1,0 +1,141 @@
+"""``xstack image``: dirty or CLEANed image of a store, with PSF, residual and model FITS."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from xstack.errors import XstackError
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "image", help="make a (CLEANed) Stokes I image of a store",
+        description="Image a store with ducc0 (multi-frequency synthesis, Stokes I from the "
+                    "parallel hands). Writes OUT.fits (restored image if --niter > 0, else the "
+                    "dirty image) beside OUT.psf.fits, OUT.residual.fits and OUT.model.fits.")
+    p.add_argument("data", help="input store (.zarr)")
+    p.add_argument("out", help="output image (.fits)")
+    p.add_argument("--size", type=int, required=True, help="image size in pixels (even, >= 32)")
+    p.add_argument("--cell", type=float, required=True, help="pixel size, arcsec")
+    p.add_argument("--niter", type=int, default=0, help="CLEAN components (0: dirty image only)")
+    p.add_argument("--threshold", default="0", help="CLEAN threshold flux, e.g. 50uJy (default 0)")
+    p.add_argument("--gain", type=float, default=0.1, help="CLEAN loop gain (default 0.1)")
+    p.add_argument("--algorithm", choices=("hogbom", "clark"), default="hogbom",
+                   help="CLEAN minor-cycle algorithm (default hogbom)")
+    p.add_argument("--weighting", choices=("natural", "uniform", "briggs"), default="natural")
+    p.add_argument("--robust", type=float, default=0.0, help="Briggs robustness (default 0)")
+    p.add_argument("--pbcor", action="store_true",
+                   help="divide the image by the primary beam (NaN below the beam cutoff)")
+    p.add_argument("--no-wterm", action="store_true", help="ignore the w-term (narrow fields)")
+    p.add_argument("--epsilon", type=float, default=1e-6, help="gridder accuracy (default 1e-6)")
+    p.add_argument("--partition", action="append", default=None, metavar="NAME",
+                   help="partition name or glob pattern to image (repeatable; default all; "
+                        "a mosaic must be imaged one pointing at a time)")
+    p.add_argument("--png", action="store_true", help="also write OUT.png (quick-look)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def output_names(out: str | Path) -> dict[str, Path]:
+    """File names written beside ``OUT.fits``: image, psf, residual, model (and png)."""
+    out = Path(out)
+    stem = out.name[:-5] if out.name.lower().endswith(".fits") else out.name
+    base = out.parent
+    return {"image": out, "psf": base / f"{stem}.psf.fits",
+            "residual": base / f"{stem}.residual.fits", "model": base / f"{stem}.model.fits",
+            "png": base / f"{stem}.png"}
+
+
+def robust_rms(values: np.ndarray) -> float:
+    """1.4826 x median absolute deviation of the finite values (robust to sources)."""
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
+def write_png(path: Path, image: np.ndarray, wcs: Any, beam: tuple[float, float, float],
+              title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from xstack._atomic import atomic_output
+
+    finite = image[np.isfinite(image)]
+    rms = robust_rms(image)
+    vmin = -3 * rms if np.isfinite(rms) else None
+    vmax = float(np.max(finite)) if finite.size else None
+    fig = plt.figure(figsize=(6.5, 6))
+    ax = fig.add_subplot(projection=wcs)
+    im = ax.imshow(image, origin="lower", cmap="inferno", vmin=vmin, vmax=vmax)
+    ax.set_xlabel("RA (ICRS)")
+    ax.set_ylabel("Dec (ICRS)")
+    ax.set_title(f"{title}\nbeam {beam[0]:.2f}\" x {beam[1]:.2f}\", PA {beam[2]:.0f} deg")
+    fig.colorbar(im, ax=ax, label="Jy/beam")
+    with atomic_output(path, overwrite=True) as tmp:
+        fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from xstack._atomic import check_output
+    from xstack.cli import emit_json
+    from xstack.coords import parse_flux
+    from xstack.imaging.clean import clean_data
+    from xstack.imaging.image import make_image
+
+    if not str(args.out).lower().endswith(".fits"):
+        raise XstackError(f"{args.out}: output image name must end in .fits")
+    names = output_names(args.out)
+    if not args.png:
+        names.pop("png")
+    for path in names.values():  # fail before any work
+        check_output(path, args.overwrite)
+    if args.niter < 0:
+        raise XstackError("--niter must be >= 0")
+    threshold = parse_flux(args.threshold)
+    common = dict(size=args.size, cell_arcsec=args.cell, weighting=args.weighting,
+                  robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
+                  epsilon=args.epsilon, partitions=args.partition,
+                  progress=not args.no_progress)
+    if not Path(args.data).exists():
+        raise XstackError(f"{args.data}: no such store")
+    if args.niter > 0:
+        result, cres = clean_data(args.data, niter=args.niter, threshold=threshold,
+                                  gain=args.gain, algorithm=args.algorithm, **common)
+        residual, model = cres.residual, cres.model
+        n_components = cres.n_components
+    else:
+        result = make_image(args.data, **common)
+        # the residual of a dirty image is the (primary-beam uncorrected) dirty image
+        residual = result.extra.get("uncorrected", result.image)
+        model = np.zeros_like(residual)
+        n_components = 0
+    result.write(names["psf"], result.psf, kind="psf", overwrite=args.overwrite)
+    result.write(names["residual"], residual, kind="residual", overwrite=args.overwrite)
+    result.write(names["model"], model, kind="model", overwrite=args.overwrite)
+    result.write(names["image"], result.image, kind="image", overwrite=args.overwrite)
+    if args.png:
+        write_png(names["png"], result.image, result.wcs, result.beam, Path(args.out).name)
+    rms = robust_rms(residual)
+    finite = result.image[np.isfinite(result.image)]
+    peak = float(finite.max()) if finite.size else float("nan")
+    if args.json:
+        emit_json({
+            "rms_jy_per_beam": rms, "peak_jy_per_beam": peak,
+            "beam_arcsec": [result.beam[0], result.beam[1]], "beam_pa_deg": result.beam[2],
+            "files": {k: str(v) for k, v in names.items()},
+            "n_components": n_components, "sum_weights": result.sum_weights,
+            "frequency_hz": result.frequency, "n_visibilities": result.n_visibilities,
+            "partitions": list(result.partitions), "weighting": result.weighting,
+            "cell_arcsec": result.cell_arcsec, "size": [result.image.shape[1], result.image.shape[0]],
+        })
+    return 0

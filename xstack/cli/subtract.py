@@ -1,0 +1,38 @@
+"""``xstack subtract``: subtract a component catalog or CLEAN model image from a store."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "subtract", help="subtract a model (catalog or CLEAN model image) from a store",
+        description="Write a residual store: DATA minus MODEL on the parallel hands. MODEL is "
+                    "a component catalog (ra, dec, flux [Jy], optional fwhm_arcsec; predicted "
+                    "exactly with equation 1 and the primary beam) or a CLEAN model FITS image "
+                    "(Jy/pixel, e.g. OUT.model.fits of xstack image; predicted with ducc0).")
+    p.add_argument("data", help="input store (.zarr)")
+    p.add_argument("model", help="component catalog or CLEAN model image (.fits)")
+    p.add_argument("out", help="output residual store (.zarr)")
+    p.add_argument("--primary-beam", choices=("standard", "airy", "gaussian", "none"),
+                   default="standard",
+                   help="catalog models: primary beam applied to the components (default: the "
+                        "telescope's standard beam)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from xstack.cli import emit_json
+    from xstack.imaging.subtract import subtract
+
+    pb = None if args.primary_beam == "standard" else args.primary_beam
+    out = subtract(args.data, args.model, args.out, overwrite=args.overwrite,
+                   progress=not args.no_progress, primary_beam=pb)
+    if args.json:
+        emit_json({"output": str(out), "model": str(args.model)})
+    return 0

@@ -1,0 +1,348 @@
+"""Numerical kernels of uv-stacking (paper eq. 4): numpy and numba only, no dask, no xarray.
+
+The stacking phasor of one visibility row (baseline coordinates u, v, w in metres, as stored
+in the MS) at frequency nu is::
+
+    P(row, nu) = sum_k W_k A_k(nu)^-1 exp(-2 pi i (u l_k + v m_k + w (n_k - 1)) nu / c) / sum_k W_k
+
+and the stacked visibility is ``V * P`` (the sign that undoes eq. 1, ``docs/conventions.md``).
+Callers pass the already normalised coefficients ``coef[k, c] = W_k A_k(nu_c)^-1 / sum W``.
+
+Engines
+-------
+``numba``
+    Direct evaluation, parallel over rows. The phase of every (row, position) pair is computed
+    in float64 *turns* ``t = d nu / c`` (``d = u l + v m + w (n - 1)``, metres); ``t - round(t)``
+    is exact in floating point, so the range reduction adds no error, and (cos, sin)(2 pi t) is
+    evaluated with a branch-free polynomial that the compiler vectorises (SIMD over positions).
+    Across evenly spaced channels the phasor advances by the recurrence
+    ``z(c+1) = z(c) * exp(-2 pi i d dnu / c)``; it is re-seeded exactly every ``reseed``
+    channels, which bounds the recurrence error by ``reseed`` times a few 1e-16
+    (measured in ``tests/test_uvstack_kernels.py``). Unevenly spaced channels are seeded exactly
+    in every channel.
+``numpy``
+    :func:`stack_phasor_numpy`: plain vectorised numpy (``np.exp`` of the full phase per
+    channel), in blocks of rows. The slow but obviously-correct path.
+``nufft``
+    :func:`stack_phasor_nufft`: a type-3 non-uniform FFT (``ducc0.nufft.experimental.nu2nu``),
+    one transform per channel, accuracy ``epsilon`` (>= 2e-13 in double precision). It wins for
+    very many positions in a compact field.
+
+Passing float32 ``uvw``/``l``/``m``/``n_minus_1``/``frequency`` arrays to the numba kernel
+computes the phase in float32: kept only to *measure* what single precision costs (the
+public pipeline always uses float64 phases).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numba
+import numpy as np
+
+from xstack.coords import SPEED_OF_LIGHT
+
+#: Re-seed the channel recurrence exactly every this many channels.
+DEFAULT_RESEED = 16
+
+# Taylor coefficients of sin(x) (odd, x..x^15) and cos(x) (even, 1..x^16) on |x| <= pi/4:
+# the first omitted terms are < 5e-17 there.
+_S3, _S5, _S7, _S9 = -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880
+_S11, _S13, _S15 = -1.0 / 39916800, 1.0 / 6227020800, -1.0 / 1307674368000
+_C2, _C4, _C6, _C8 = -0.5, 1.0 / 24, -1.0 / 720, 1.0 / 40320
+_C10, _C12, _C14, _C16 = -1.0 / 3628800, 1.0 / 479001600, -1.0 / 87178291200, 1.0 / 20922789888000
+_TWO_PI = 2.0 * math.pi
+
+
+@numba.njit(inline="always", fastmath=False)
+def _cis_minus_turns(t):
+    """(cos, -sin)(2 pi t) = exp(-2 pi i t), t in turns (any magnitude < 2^52).
+
+    Branch-free so that loops calling it vectorise: exact reduction to s = t - round(t) in
+    [-1/2, 1/2], to the octant x = 2 pi (s - q/4) in [-pi/4, pi/4] (exact by Sterbenz), Taylor
+    series there, and the quadrant rotation by q with exact {-1, 0, 1} factors.
+    """
+    s = t - math.floor(t + 0.5)
+    q = math.floor(4.0 * s + 0.5)  # -2 .. 2
+    x = _TWO_PI * (s - 0.25 * q)
+    x2 = x * x
+    sn = x * (1.0 + x2 * (_S3 + x2 * (_S5 + x2 * (_S7 + x2 * (_S9 + x2 * (_S11 + x2 * (
+        _S13 + x2 * _S15)))))))
+    cs = 1.0 + x2 * (_C2 + x2 * (_C4 + x2 * (_C6 + x2 * (_C8 + x2 * (_C10 + x2 * (
+        _C12 + x2 * (_C14 + x2 * _C16)))))))
+    qq = q * q
+    cq = 1.0 + qq * (qq - 7.0) / 6.0  # cos(q pi/2), exact for q in -2..2
+    sq = q * (4.0 - qq) / 3.0  # sin(q pi/2)
+    cos_t = cs * cq - sn * sq
+    sin_t = sn * cq + cs * sq
+    return cos_t, -sin_t
+
+
+@numba.njit(parallel=True, fastmath={"reassoc", "contract"}, cache=True)
+def _phasor_numba(uvw, fc, l, m, n1, coef_t, step, even, reseed, out_re, out_im):
+    """Fill out_re/out_im (nrow, nchan) with the normalised phasor sum.
+
+    fc: frequency / c (nchan,), 1/m. coef_t: (nchan, nsrc). step: (fc[1]-fc[0]) when the
+    channels are evenly spaced. 'reassoc' only lets the compiler vectorise the sums over
+    positions (a different summation order); phases are reduced exactly in turns.
+    """
+    nrow = uvw.shape[0]
+    nchan = fc.shape[0]
+    nsrc = l.shape[0]
+    block = 64
+    nblock = (nrow + block - 1) // block
+    for b in numba.prange(nblock):
+        d = np.empty(nsrc, dtype=l.dtype)
+        zr = np.empty(nsrc)
+        zi = np.empty(nsrc)
+        rr = np.empty(nsrc)
+        ri = np.empty(nsrc)
+        for row in range(b * block, min(nrow, (b + 1) * block)):
+            u = uvw[row, 0]
+            v = uvw[row, 1]
+            w = uvw[row, 2]
+            for k in range(nsrc):
+                d[k] = u * l[k] + v * m[k] + w * n1[k]
+            if even and nchan > 1:
+                for k in range(nsrc):
+                    a, s = _cis_minus_turns(d[k] * step)
+                    rr[k] = a
+                    ri[k] = s
+            for c in range(nchan):
+                f = fc[c]
+                if (not even) or c % reseed == 0:
+                    for k in range(nsrc):
+                        a, s = _cis_minus_turns(d[k] * f)
+                        zr[k] = a
+                        zi[k] = s
+                else:
+                    for k in range(nsrc):
+                        a = zr[k] * rr[k] - zi[k] * ri[k]
+                        zi[k] = zr[k] * ri[k] + zi[k] * rr[k]
+                        zr[k] = a
+                acc_r = 0.0
+                acc_i = 0.0
+                for k in range(nsrc):
+                    acc_r += coef_t[c, k] * zr[k]
+                    acc_i += coef_t[c, k] * zi[k]
+                out_re[row, c] = acc_r
+                out_im[row, c] = acc_i
+
+
+def _check_inputs(uvw, frequency, l, m, n_minus_1, weight, inv_attenuation):
+    uvw = np.asarray(uvw)
+    frequency = np.asarray(frequency)
+    if uvw.ndim != 2 or uvw.shape[1] != 3:
+        raise ValueError(f"uvw must have shape (nrow, 3), got {uvw.shape}")
+    nsrc = np.size(l)
+    nchan = frequency.size
+    weight = np.broadcast_to(np.asarray(weight, dtype=np.float64), (nsrc,))
+    inv_att = np.broadcast_to(np.asarray(inv_attenuation, dtype=np.float64), (nsrc, nchan))
+    return uvw, frequency, weight, inv_att
+
+
+def normalised_coefficients(weight, inv_attenuation, nchan: int) -> np.ndarray:
+    """``coef[k, c] = W_k A_k(nu_c)^-1 / sum_k W_k`` as float64 (nsrc, nchan).
+
+    Raises ``ValueError`` when ``sum W`` is not positive (the wrappers turn that into a
+    user-facing error before any kernel runs).
+    """
+    weight = np.asarray(weight, dtype=np.float64).ravel()
+    total = weight.sum()
+    if not total > 0:
+        raise ValueError("sum of position weights is not positive")
+    inv = np.broadcast_to(np.asarray(inv_attenuation, dtype=np.float64), (weight.size, nchan))
+    return weight[:, None] * inv / total
+
+
+def channels_evenly_spaced(frequency, uvw_max: float, l_max: float, tol_rad: float = 1e-10) -> bool:
+    """Whether the channel recurrence is exact enough: the deviation of each channel from an
+    evenly spaced grid, times the largest path difference, must stay below ``tol_rad``."""
+    f = np.asarray(frequency, dtype=np.float64)
+    if f.size < 2:
+        return False
+    grid = f[0] + (f[1] - f[0]) * np.arange(f.size)
+    dev = np.max(np.abs(f - grid))
+    return bool(2 * np.pi * dev * uvw_max * max(l_max, 1e-300) * 3 / SPEED_OF_LIGHT < tol_rad)
+
+
+def stack_phasor(uvw, frequency, l, m, n_minus_1, weight, inv_attenuation, *,
+                 reseed: int = DEFAULT_RESEED, engine: str = "numba",
+                 epsilon: float = 1e-12, nthreads: int = 0) -> np.ndarray:
+    """The normalised stacking phasor of paper eq. 4 for every (row, channel).
+
+    Parameters
+    ----------
+    uvw : (nrow, 3) array
+        Baseline coordinates in metres, as stored in the MS.
+    frequency : (nchan,) array
+        Channel frequencies, Hz.
+    l, m, n_minus_1 : (nsrc,) arrays
+        Direction cosines of the stacking positions relative to the phase centre
+        (:func:`xstack.coords.radec_to_lmn`).
+    weight : (nsrc,) array
+        Position weights W_k (>= 0, positive sum).
+    inv_attenuation : (nsrc, nchan) array
+        1 / A_k(nu_c), primary-beam correction per position and channel (1 for none).
+    reseed
+        Exact re-seeding interval of the channel recurrence (numba engine).
+    engine
+        ``"numba"`` (default), ``"numpy"`` or ``"nufft"``.
+    epsilon
+        Requested accuracy of the ``nufft`` engine.
+
+    Returns
+    -------
+    numpy.ndarray, complex128, shape (nrow, nchan)
+        ``sum_k W_k A_k^-1 exp(-2 pi i (u l_k + v m_k + w (n_k - 1)) nu_c / c) / sum_k W_k``.
+        float32 inputs to the numba engine give a float32-phase result (for benchmarks).
+    """
+    uvw, frequency, weight, inv_att = _check_inputs(uvw, frequency, l, m, n_minus_1, weight,
+                                                    inv_attenuation)
+    nchan = frequency.size
+    coef = normalised_coefficients(weight, inv_att, nchan)
+    if engine == "numpy":
+        return stack_phasor_numpy(uvw, frequency, l, m, n_minus_1, coef)
+    if engine == "nufft":
+        return stack_phasor_nufft(uvw, frequency, l, m, n_minus_1, coef, epsilon=epsilon,
+                                  nthreads=nthreads)
+    if engine != "numba":
+        raise ValueError(f"unknown engine {engine!r}")
+    single = uvw.dtype == np.float32
+    dt = np.float32 if single else np.float64
+    uvw_c = np.ascontiguousarray(uvw, dtype=dt)
+    l_c = np.ascontiguousarray(l, dtype=dt)
+    m_c = np.ascontiguousarray(m, dtype=dt)
+    n_c = np.ascontiguousarray(n_minus_1, dtype=dt)
+    fc = np.ascontiguousarray(np.asarray(frequency, dtype=np.float64) / SPEED_OF_LIGHT).astype(dt)
+    nrow = uvw_c.shape[0]
+    out_re = np.empty((nrow, nchan))
+    out_im = np.empty((nrow, nchan))
+    if nrow == 0 or l_c.size == 0:
+        return np.zeros((nrow, nchan), dtype=np.complex128)
+    umax = float(np.max(np.abs(uvw_c))) if nrow else 0.0
+    lmax = float(max(np.max(np.abs(l_c)), np.max(np.abs(m_c)), np.max(np.abs(n_c))))
+    even = channels_evenly_spaced(frequency, umax, lmax)
+    step = dt(fc[1] - fc[0]) if nchan > 1 else dt(0.0)
+    if even:  # the recurrence step must be the exact spacing of the (float) grid used
+        step = dt((frequency[1] - frequency[0]) / SPEED_OF_LIGHT)
+    _phasor_numba(uvw_c, fc, l_c, m_c, n_c, np.ascontiguousarray(coef.T), step, even,
+                  max(1, int(reseed)), out_re, out_im)
+    out = np.empty((nrow, nchan), dtype=np.complex128)
+    out.real = out_re
+    out.imag = out_im
+    return out
+
+
+def stack_phasor_numpy(uvw, frequency, l, m, n_minus_1, coef, block_bytes: int = 64 * 2**20):
+    """Plain-numpy evaluation of the phasor from normalised coefficients ``coef`` (nsrc, nchan).
+
+    Every phase is computed directly in float64 (no recurrence); memory is bounded by
+    processing blocks of rows.
+    """
+    uvw = np.asarray(uvw, dtype=np.float64)
+    frequency = np.asarray(frequency, dtype=np.float64)
+    lmn = np.stack([np.asarray(l, np.float64), np.asarray(m, np.float64),
+                    np.asarray(n_minus_1, np.float64)], axis=1)  # (nsrc, 3)
+    nrow, nsrc = uvw.shape[0], lmn.shape[0]
+    out = np.empty((nrow, frequency.size), dtype=np.complex128)
+    step = max(1, block_bytes // max(1, 16 * nsrc))
+    for start in range(0, nrow, step):
+        d = uvw[start:start + step] @ lmn.T  # (rows, nsrc) metres
+        for c, nu in enumerate(frequency):
+            out[start:start + step, c] = np.exp(-2j * np.pi * d * (nu / SPEED_OF_LIGHT)) @ coef[:, c]
+    return out
+
+
+def nufft_grid_cells(uvw, frequency, lmn) -> float:
+    """Rough number of oversampled grid cells a type-3 NUFFT needs (space-bandwidth product)."""
+    fmax = float(np.max(frequency)) / SPEED_OF_LIGHT
+    cells = 1.0
+    for d in range(3):
+        xh = 0.5 * float(np.ptp(lmn[:, d])) if lmn.shape[0] else 0.0
+        sh = 0.5 * float(np.ptp(uvw[:, d])) * 2 * np.pi * fmax if uvw.shape[0] else 0.0
+        cells *= 2.0 * (16 + 4 * xh * sh / np.pi)
+    return cells
+
+
+def stack_phasor_nufft(uvw, frequency, l, m, n_minus_1, coef, *, epsilon: float = 1e-12,
+                       nthreads: int = 0, max_grid_bytes: float = 2 * 2**30) -> np.ndarray:
+    """Type-3 NUFFT evaluation (``ducc0.nufft.experimental.nu2nu``), one transform per channel.
+
+    ``nu2nu(forward=True)`` computes ``sum_k a_k exp(-i x_k . s_j)``; we pass x = (l, m, n-1)
+    and s = 2 pi (u, v, w) nu / c.
+    """
+    from ducc0.nufft.experimental import nu2nu
+
+    uvw = np.asarray(uvw, dtype=np.float64)
+    lmn = np.ascontiguousarray(np.stack([np.asarray(l, np.float64), np.asarray(m, np.float64),
+                                         np.asarray(n_minus_1, np.float64)], axis=1))
+    nthreads = nthreads or (os.cpu_count() or 1)
+    cells = nufft_grid_cells(uvw, frequency, lmn)
+    if cells * 16 > max_grid_bytes:
+        raise MemoryError(f"nufft engine would need a ~{cells * 16 / 2**30:.1f} GiB grid for this "
+                          "field and baseline range; use the numba engine")
+    out = np.empty((uvw.shape[0], len(frequency)), dtype=np.complex128)
+    eps = max(float(epsilon), 2.1e-13)
+    for c, nu in enumerate(np.asarray(frequency, dtype=np.float64)):
+        s = np.ascontiguousarray(uvw * (2 * np.pi * nu / SPEED_OF_LIGHT))
+        out[:, c] = nu2nu(points_in=np.ascontiguousarray(coef[:, c].astype(np.complex128)),
+                          coord_in=lmn, coord_out=s, forward=True, epsilon=eps,
+                          nthreads=nthreads)
+    return out
+
+
+# --- reductions --------------------------------------------------------------------------
+
+def _use_mask(vis, weight, flag, pol_mask, uv_mask):
+    use = ~np.asarray(flag, dtype=bool)
+    if pol_mask is not None:
+        use = use & np.asarray(pol_mask, dtype=bool)[None, None, :]
+    if uv_mask is not None:
+        use = use & np.asarray(uv_mask, dtype=bool)[:, :, None]
+    w = np.where(use, np.asarray(weight, dtype=np.float64), 0.0)
+    # NaN/inf data under flags (or with zero weight) must not poison the sums
+    good = use & (w > 0) & np.isfinite(vis)
+    return good, np.where(good, w, 0.0)
+
+
+def weighted_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> tuple[float, float]:
+    """``(sum w Re(V P), sum w)`` over unflagged, selected visibilities of one chunk.
+
+    Parameters
+    ----------
+    vis, weight, flag : (nrow, nchan, npol)
+        Visibilities (Jy), weights (1/Jy^2), flags.
+    phasor : (nrow, nchan) complex
+        The stacking phasor (:func:`stack_phasor`); pass ``None`` for already stacked data.
+    pol_mask : (npol,) bool, optional
+        Correlations to use (the parallel hands for Stokes I).
+    uv_mask : (nrow, nchan) bool, optional
+        Visibilities inside the uv range.
+
+    The weighted mean flux of the chunk is the ratio; sums of several chunks add.
+    """
+    s = stack_sums(vis, weight, flag, phasor, pol_mask, uv_mask)
+    return float(s[0]), float(s[1])
+
+
+def stack_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> np.ndarray:
+    """``[sum w Re(VP), sum w, sum w |P|^2, sum w Im(VP), count]`` of one chunk (float64).
+
+    ``sum w |P|^2`` gives the honest variance of the weighted mean when ``w = 1/sigma^2`` of
+    the input visibility (per real component): ``Var(Re(VP)) = |P|^2 / w``, hence
+    ``Var(mean) = sum_i s_i^2 w_i |P_i|^2 / (sum_i s_i w_i)^2`` with per-partition weight
+    factors ``s_i`` (applied by the caller).
+    """
+    vis = np.asarray(vis)
+    good, w = _use_mask(vis, weight, flag, pol_mask, uv_mask)
+    v = np.where(good, vis, 0).astype(np.complex128)
+    if phasor is not None:
+        p = np.asarray(phasor, dtype=np.complex128)[:, :, None]
+        v = v * p
+        p2 = (p.real**2 + p.imag**2) * np.ones((1, 1, vis.shape[2]))
+    else:
+        p2 = np.ones(vis.shape)
+    return np.array([np.sum(w * v.real), np.sum(w), np.sum(w * p2), np.sum(w * v.imag),
+                     float(np.count_nonzero(good))])

@@ -12,13 +12,15 @@ Conventions shared by every function here:
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage
 
 #: Pixels around a non-finite input pixel that a spline shift marks as NaN. The cubic
 #: spline's prefilter spreads a value with weight ~0.268**k at k pixels, so after 4 pixels
-#: the influence of the zero-filled gap is below 0.5 % of the local brightness.
+#: the influence of the filled gap is below 0.5 % of the step at its border.
 SPLINE_NAN_GUARD = 4
 
 #: Extra pixels on each side of a stamp that a sub-pixel shift works on, so that the wrap
@@ -97,21 +99,33 @@ def fourier_shift(stamps: np.ndarray, dy: np.ndarray, dx: np.ndarray) -> np.ndar
 def spline_shift(stamps: np.ndarray, dy: np.ndarray, dx: np.ndarray, order: int = 3) -> np.ndarray:
     """Shift each stamp by (dy, dx) pixels with a B-spline interpolation: out(r) = in(r - d).
 
-    Non-finite pixels are zero-filled for the interpolation and the result is NaN within
-    ``SPLINE_NAN_GUARD`` pixels of them, so no zero-filled value reaches the stack.
+    Non-finite pixels are filled with the nearest finite value for the interpolation and the
+    result is NaN within ``SPLINE_NAN_GUARD`` pixels of them, so no filled value reaches the
+    stack (beyond the guard its influence is below 0.5 % of the local step).
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     out = np.empty_like(stamps)
     for k in range(stamps.shape[0]):
-        src = stamps[k]
-        bad = ~np.isfinite(src)
-        if bad.any():
-            src = np.where(bad, 0.0, src)
-        out[k] = ndimage.shift(src, (float(dy[k]), float(dx[k])), order=order, mode="nearest",
-                               prefilter=order > 1)
-        if bad.any():
-            guard = ndimage.binary_dilation(bad, iterations=SPLINE_NAN_GUARD)
-            out[k][guard] = np.nan
+        out[k] = _guarded(stamps[k], lambda a, k=k: ndimage.shift(
+            a, (float(dy[k]), float(dx[k])), order=order, mode="nearest", prefilter=order > 1))
+    return out
+
+
+def _guarded(stamp: np.ndarray, shift: Any) -> np.ndarray:
+    """Apply ``shift`` to a stamp with non-finite pixels without letting a fill reach the result.
+
+    The gap is filled with the nearest finite value (continuous at its border, so the
+    interpolant barely rings), shifted, and every pixel within ``SPLINE_NAN_GUARD`` of the gap
+    is set to NaN.
+    """
+    bad = ~np.isfinite(stamp)
+    if not bad.any():
+        return shift(stamp)
+    if bad.all():
+        return np.full_like(stamp, np.nan)
+    idx = ndimage.distance_transform_edt(bad, return_distances=False, return_indices=True)
+    out = shift(stamp[tuple(idx)])
+    out[ndimage.binary_dilation(bad, iterations=SPLINE_NAN_GUARD)] = np.nan
     return out
 
 
@@ -126,8 +140,9 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
         and the stack loses peak brightness (see :func:`pixelisation_factor`).
     ``"fourier"``
         Fourier shift by the fractional offset (exact for band-limited images). A stamp with
-        non-finite pixels in its margin (image edge, blanking) is shifted with the spline
-        instead, because the Fourier shift would spread the gap over the whole stamp.
+        non-finite pixels in its margin (image edge, blanking) has the gap filled with the
+        nearest finite values for the transform, and pixels within ``SPLINE_NAN_GUARD`` of
+        the gap are NaN afterwards.
     ``"spline"``
         cubic B-spline interpolation (``scipy.ndimage.shift``).
 
@@ -156,8 +171,9 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
     if subpixel == "fourier":
         if finite.any():
             out[finite] = fourier_shift(padded[finite], dy[finite], dx[finite])
-        if (~finite).any():
-            out[~finite] = spline_shift(padded[~finite], dy[~finite], dx[~finite])
+        for k in np.flatnonzero(~finite):
+            out[k] = _guarded(padded[k], lambda a, k=k: fourier_shift(a[None], dy[k:k + 1],
+                                                                       dx[k:k + 1])[0])
     else:
         out[:] = spline_shift(padded, dy, dx)
     # a pixel whose nearest-pixel source value is off the image stays NaN whatever the method

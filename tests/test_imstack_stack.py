@@ -1,0 +1,310 @@
+"""Image-stacking end to end on synthetic FITS images with known injected fluxes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+from _imstack_helpers import (
+    expected_nearest,
+    make_field,
+    render,
+    sin_wcs,
+    write_image,
+)
+from astropy.io import fits
+
+from xstack.beams import standard_beam
+from xstack.coords import angular_separation
+from xstack.errors import XstackError
+from xstack.imstack import kernels
+from xstack.imstack.io import read_stack_fits
+from xstack.imstack.stack import imstack
+
+BEAM = (3.2, 1.6, 0.0)  # the paper's VLA A-array beam at 1.4 GHz, arcsec
+
+
+@pytest.fixture(scope="module")
+def fields(tmp_path_factory):
+    """One 400-source field at 0.25" and one at 0.5" pixels (the paper's types 1 and 2)."""
+    out = {}
+    d = tmp_path_factory.mktemp("fields")
+    for cell, seed in ((0.25, 11), (0.5, 12)):
+        rng = np.random.default_rng(seed)
+        out[cell] = make_field(d, rng, cell, beam=BEAM, name=f"f{cell}.fits", psf=True)
+    return out
+
+
+@pytest.mark.parametrize("cell", [0.25, 0.5])
+def test_nearest_pixel_loses_exactly_the_pixelisation_factor(fields, cell):
+    path, ra, dec, _, _ = fields[cell]
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none")
+    assert res.n_positions == 400
+    # exact expectation for these positions: the beam at each one's sub-pixel offset
+    exact = expected_nearest(res.cube.frac_x.values, res.cube.frac_y.values, cell, BEAM)
+    assert abs(res.flux_jy - exact) < 4 * res.flux_err_jy
+    # the analytic average over a uniform offset (kernels.pixelisation_factor) agrees to the
+    # sampling scatter of 400 offsets
+    assert res.pixelisation_factor == pytest.approx(exact, abs=3e-3)
+    loss = 1 - res.flux_jy
+    if cell == 0.25:  # paper: ~1 % (Gaussian-beam prediction 0.7 %)
+        assert 0.002 < loss < 0.015
+    else:             # paper: ~5 % (Gaussian-beam prediction 2.8 %)
+        assert 0.018 < loss < 0.05
+    # the stack's PSF carries the same smear: its centre is the expected factor
+    assert res.psf_stamp is not None
+    assert float(res.psf_stamp.values[16, 16]) == pytest.approx(exact, abs=1e-4)
+
+
+@pytest.mark.parametrize("cell,method", [(0.25, "fourier"), (0.5, "fourier"), (0.5, "spline")])
+def test_subpixel_alignment_recovers_flux_within_one_percent(fields, cell, method):
+    path, ra, dec, _, _ = fields[cell]
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel=method)
+    assert abs(res.flux_jy - 1.0) < 0.01
+    assert abs(res.flux_jy - 1.0) < 4 * res.flux_err_jy + (1e-3 if method == "fourier" else 3e-3)
+    assert float(res.psf_stamp.values[16, 16]) == pytest.approx(1.0, abs=1e-9)
+    assert res.pixelisation_factor is None
+
+
+def test_median_and_mean_agree_on_gaussian_noise(tmp_path):
+    rng = np.random.default_rng(5)
+    sigma, n = 1.0, 400
+    path, ra, dec, _, _ = make_field(tmp_path, rng, 0.5, beam=BEAM, noise=sigma, spacing=40)
+    pos = np.c_[ra, dec]
+    mean = imstack(path, pos, stamp_size=32, weighting="none", subpixel="fourier")
+    med = imstack(path, pos, stamp_size=32, method="median", weighting="none", subpixel="fourier")
+    # median - mean of N Gaussian values: zero mean, std sqrt(pi/2 - 1) sigma / sqrt(N)
+    sd = np.sqrt(np.pi / 2 - 1) * sigma / np.sqrt(n)
+    assert abs(med.flux_jy - mean.flux_jy) < 4 * sd
+    diff = (med.stacked - mean.stacked).values
+    assert abs(np.mean(diff)) < 4 * sd / np.sqrt(diff.size / 4)
+    assert 0.8 * sd < np.std(diff) < 1.2 * sd
+    assert abs(mean.flux_jy - 1.0) < 4 * mean.flux_err_jy
+    assert abs(med.flux_jy - 1.0) < 4 * med.flux_err_jy
+    assert med.flux_err_jy / mean.flux_err_jy == pytest.approx(np.sqrt(np.pi / 2), rel=0.05)
+    # the propagated error is the real scatter of the stacked pixels (white noise)
+    assert mean.stamp_rms_jy == pytest.approx(mean.flux_err_jy, rel=0.12)
+
+
+def test_sigma2_weights_follow_eq3_and_eq5(tmp_path):
+    rng = np.random.default_rng(6)
+    cell, n_side, spacing = 0.5, 12, 40
+    n = 2 * spacing + spacing * (n_side - 1) + 1
+    w = sin_wcs(n, cell)
+    base = spacing + spacing * np.arange(n_side, dtype=np.float64)
+    gx, gy = np.meshgrid(base, base)
+    px = gx.ravel() + rng.uniform(-0.5, 0.5, gx.size)
+    py = gy.ravel() + rng.uniform(-0.5, 0.5, gy.size)
+    img = render(n, cell, px, py, np.full(px.size, 1.0), BEAM)
+    noise_map = np.where(np.arange(n)[None, :] < n // 2, 0.05, 0.2) * np.ones((n, 1))
+    img += rng.normal(size=img.shape) * noise_map
+    path = write_image(tmp_path / "noisy.fits", img, w, BEAM)
+    ra, dec = w.pixel_to_world_values(px, py)
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="sigma2", subpixel="fourier")
+    cube = res.cube
+    # independent sigma_k: std (ddof 1) outside a circle of radius BMAJ in arcsec offsets
+    r = np.hypot(cube.x.values[None, :], cube.y.values[:, None])
+    outside = r > BEAM[0]
+    sig = np.array([np.std(s[outside][np.isfinite(s[outside])], ddof=1) for s in cube.values])
+    np.testing.assert_allclose(cube.sigma.values, sig, rtol=1e-10)
+    np.testing.assert_allclose(cube.weight.values, 1 / sig**2, rtol=1e-10)
+    left = px < n // 2
+    assert np.median(sig[left]) == pytest.approx(0.05, rel=0.05)
+    assert np.median(sig[~left]) == pytest.approx(0.2, rel=0.05)
+    wk = 1 / sig**2
+    manual = np.einsum("k,kyx->yx", wk, cube.values) / wk.sum()
+    np.testing.assert_allclose(res.stacked.values, manual, rtol=1e-10)
+    assert res.flux_err_jy == pytest.approx(1 / np.sqrt(wk.sum()), rel=1e-10)  # eq. 5
+    np.testing.assert_allclose(res.weights[:, 0], wk)
+    unweighted = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    assert res.flux_err_jy < 0.75 * unweighted.flux_err_jy
+    assert abs(res.flux_jy - 1.0) < 4 * res.flux_err_jy
+    assert res.stamp_rms_jy == pytest.approx(res.flux_err_jy, rel=0.15)
+
+
+@pytest.mark.parametrize("subpixel", [False, "fourier"])
+def test_edge_stamps_do_not_bias_the_stack(tmp_path, subpixel):
+    rng = np.random.default_rng(7)
+    cell, n, bg = 0.5, 120, 0.5
+    w = sin_wcs(n, cell)
+    # positions 2-5 pixels from every edge and corner, and some inside, >= 27 pixels apart
+    xy = np.array([(2.3, 30.4), (3.7, 60.1), (4.6, 90.8), (115.4, 30.4), (116.8, 60.1),
+                   (117.2, 90.8), (30.2, 2.6), (60.6, 3.3), (90.4, 4.1), (30.2, 117.1),
+                   (60.6, 116.4), (90.4, 115.6), (2.8, 3.1), (116.9, 2.2), (3.4, 116.6),
+                   (117.3, 117.4), (60.3, 60.2), (35.1, 40.7), (85.6, 80.3)])
+    px, py = xy[:, 0], xy[:, 1]
+    img = render(n, cell, px, py, np.ones(px.size), BEAM, background=bg)
+    img += rng.normal(0, 1e-3, img.shape)
+    path = write_image(tmp_path / "edge.fits", img, w, BEAM)
+    ra, dec = w.pixel_to_world_values(px, py)
+    res = imstack(path, np.c_[ra, dec], stamp_size=40, weighting="none", subpixel=subpixel)
+    cube = res.cube.values
+    assert np.isnan(cube).any()  # stamps do run off the image
+    truth = bg + (1.0 if subpixel else expected_nearest(res.cube.frac_x.values,
+                                                        res.cube.frac_y.values, cell, BEAM))
+    assert res.flux_jy == pytest.approx(truth, abs=3e-3)
+    # far from the source the stack is the background everywhere, including where only a
+    # few stamps have data; zero-filling would drag those pixels towards 0
+    far = np.hypot(res.stacked.x.values[None, :], res.stacked.y.values[:, None]) > 2.2 * BEAM[0]
+    far &= np.isfinite(res.stacked.values)
+    assert np.abs(res.stacked.values[far] - bg).max() < 0.02
+    zero_filled = np.nan_to_num(cube, nan=0.0).mean(axis=0)
+    assert np.abs(zero_filled[far] - bg).max() > 0.2  # the test would catch a zero fill
+    assert res.weight_sum.values.min() < res.weight_sum.values.max()
+
+
+def test_mosaic_pointings_with_pb_weights_and_4d_axes(tmp_path):
+    rng = np.random.default_rng(8)
+    cell, n, beam, freq = 0.2, 256, (1.0, 0.8, 30.0), 230e9
+    pb = standard_beam("ALMA", 12.0)
+    centres = [(57.30, -30.0), (57.30 + 20 / 3600 / np.cos(np.radians(30)), -30.0)]
+    mid_ra = 0.5 * (centres[0][0] + centres[1][0])
+    ra = mid_ra + (np.arange(25) % 5 - 2) * 3.0 / 3600 / np.cos(np.radians(30)) \
+        + rng.uniform(-0.1, 0.1, 25) / 3600
+    dec = -30.0 + (np.arange(25) // 5 - 2) * 3.0 / 3600 + rng.uniform(-0.1, 0.1, 25) / 3600
+    ra = np.append(ra, centres[0][0] - 9 / 3600)  # seen by pointing 0 only (A1 < 0.1)
+    dec = np.append(dec, -30.0)
+    paths, atten = [], []
+    for i, (r0, d0) in enumerate(centres):
+        w = sin_wcs(n, cell, r0, d0)
+        a = pb(angular_separation(np.radians(ra), np.radians(dec), np.radians(r0), np.radians(d0)), freq)
+        px, py = w.world_to_pixel_values(ra, dec)
+        img = render(n, cell, px, py, 1.0 * a, beam) + rng.normal(0, 2e-3, (n, n))
+        paths.append(write_image(tmp_path / f"p{i}.fits", img, w, beam, four_d=True, freq_hz=freq,
+                                 extra={"TELESCOP": "ALMA"}))
+        atten.append(a)
+    atten = np.array(atten).T
+    assert atten[-1, 1] < 0.1 < atten[-1, 0]
+    res = imstack(paths, np.c_[ra, dec], stamp_size=40, weighting="pb", pbcor=True, subpixel="fourier")
+    seen = atten >= 0.1
+    np.testing.assert_allclose(res.weights, np.where(seen, atten**2, 0.0), rtol=1e-9)
+    assert res.n_positions == 26 and res.n_stamps == int(seen.sum()) == 51
+    assert abs(res.flux_jy - 1.0) < 0.01
+    assert set(np.unique(res.cube.image.values)) == {0, 1}
+
+
+def test_four_d_image_equals_two_d(tmp_path):
+    rng = np.random.default_rng(9)
+    w = sin_wcs(100, 0.5)
+    img = rng.normal(size=(100, 100))
+    p2 = write_image(tmp_path / "a.fits", img, w, BEAM)
+    p4 = write_image(tmp_path / "b.fits", img, w, BEAM, four_d=True)
+    ra, dec = w.pixel_to_world_values([30.3, 60.7], [40.2, 55.5])
+    pos = np.c_[ra, dec]
+    r2 = imstack(p2, pos, stamp_size=24)
+    r4 = imstack(p4, pos, stamp_size=24)
+    np.testing.assert_array_equal(r2.stacked.values, r4.stacked.values)
+
+
+def test_lowfreq_filter_removes_a_background_offset(fields, tmp_path):
+    rng = np.random.default_rng(10)
+    cell = 0.5
+    path, ra, dec, px, py = make_field(tmp_path, rng, cell, beam=BEAM, noise=1e-3, psf=True,
+                                       n_side=8, spacing=70)
+    with fits.open(path) as h:
+        data = h[0].data + 0.3  # a background the filter must remove
+        fits.PrimaryHDU(data, header=h[0].header).writeto(tmp_path / "bg.fits")
+    (tmp_path / "bg.psf.fits").write_bytes((tmp_path / "img.psf.fits").read_bytes())
+    pos = np.c_[ra, dec]
+    raw = imstack(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier")
+    assert raw.flux_jy == pytest.approx(1.3, abs=5e-3)
+    filt = imstack(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
+                   filter_lowfreq=1)
+    # zeroing the DC cell subtracts the stamp mean: background + the source's mean over the stamp
+    expected = raw.flux_jy - np.mean(raw.stacked.values)
+    assert filt.flux_jy == pytest.approx(expected, abs=1e-9)
+    assert abs(filt.flux_jy - (1.0 - np.mean(raw.psf_stamp.values) * 1.0)) < 0.02
+    assert float(filt.psf_stamp.values[32, 32]) == pytest.approx(1 - np.mean(raw.psf_stamp.values))
+    # a uv distance: one Fourier cell of a 64 x 0.5" stamp is 6446 lambda
+    by_q = imstack(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
+                   filter_lowfreq="1klambda")
+    assert by_q.flux_jy == pytest.approx(filt.flux_jy, abs=1e-12)
+
+
+def test_outputs_layout_and_roundtrip(fields, tmp_path):
+    path, ra, dec, _, _ = fields[0.5]
+    out = tmp_path / "stack.fits"
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, subpixel="fourier", out=out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.cube.zarr", "stack.fits", "stack.png"]
+    with fits.open(out) as hdul:
+        assert [h.name for h in hdul] == ["PRIMARY", "PSF", "WEIGHTS"]
+        h = hdul[0].header
+        assert h["CTYPE1"] == "RA---SIN" and h["CRPIX1"] == 17 and h["CRPIX2"] == 17
+        assert h["BMAJ"] * 3600 == pytest.approx(3.2) and h["BUNIT"] == "Jy/beam"
+        assert h["STFLUX"] == pytest.approx(res.flux_jy) and h["NSTACK"] == 400
+        assert hdul[0].data[16, 16] == pytest.approx(res.flux_jy)
+        assert hdul["PSF"].data.max() == pytest.approx(1.0)
+    back = read_stack_fits(out)
+    assert back["centre"] == (16, 16) and back["pixel_arcsec"][0] == pytest.approx(0.5)
+    cube = xr.open_zarr(tmp_path / "stack.cube.zarr", consolidated=False)
+    np.testing.assert_array_equal(cube["stamps"].values, res.cube.values)
+    np.testing.assert_array_equal(cube["stamps"].position.values, np.arange(400))
+    json.dumps(res.to_dict())
+    with pytest.raises(XstackError, match="exists"):
+        imstack(path, np.c_[ra, dec], stamp_size=32, out=out)
+    res2 = imstack(path, np.c_[ra, dec], stamp_size=32, out=out, overwrite=True, cube_format="fits",
+                   plot=False)
+    with fits.open(tmp_path / "stack.cube.fits") as hdul:
+        assert hdul[0].data.shape == (400, 32, 32)
+        assert hdul["STAMPS"].data["position"][0] == 1
+    assert res2.flux_jy < res.flux_jy  # nearest pixel loses the pixelisation factor
+
+
+def _no_celestial(tmp_path):
+    h = fits.Header()
+    h["CTYPE1"], h["CTYPE2"] = "LINEAR", "LINEAR"
+    p = tmp_path / "lin.fits"
+    fits.PrimaryHDU(np.zeros((50, 50), np.float32), header=h).writeto(p)
+    return p
+
+
+def test_bad_input_raises_and_writes_nothing(fields, tmp_path):
+    path, ra, dec, _, _ = fields[0.5]
+    outdir = tmp_path / "out"
+    outdir.mkdir()
+    out = outdir / "s.fits"
+    pos = np.c_[ra, dec]
+    with pytest.raises(XstackError, match="celestial"):
+        imstack(_no_celestial(tmp_path), pos, out=out)
+    with pytest.raises(XstackError, match="outside every image.*row 401"):
+        imstack(path, np.vstack([pos, [[ra[0] + 1.0, dec[0]]]]), stamp_size=32, out=out)
+    with pytest.raises(XstackError, match="larger than the image"):
+        imstack(path, pos, stamp_size=1000, out=out)
+    with pytest.raises(XstackError, match="method"):
+        imstack(path, pos, method="mode", out=out)
+    with pytest.raises(XstackError, match="no such image"):
+        imstack(tmp_path / "missing.fits", pos, out=out)
+    w = sin_wcs(60, 0.5)
+    cube_like = fits.Header(w.to_header())
+    cube_like["NAXIS"] = 3
+    cube_like["CTYPE3"], cube_like["CRVAL3"], cube_like["CDELT3"], cube_like["CRPIX3"] = \
+        "FREQ", 1e9, 1e6, 1
+    p3 = tmp_path / "cube3.fits"
+    fits.PrimaryHDU(np.zeros((4, 60, 60), np.float32), header=cube_like).writeto(p3)
+    with pytest.raises(XstackError, match="4 planes"):
+        imstack(p3, pos, out=out)
+    coarse = write_image(tmp_path / "coarse.fits", np.zeros((100, 100)), sin_wcs(100, 1.0), BEAM)
+    with pytest.raises(XstackError, match="pixel scale"):
+        imstack([path, coarse], pos, stamp_size=32, out=out)
+    assert list(outdir.iterdir()) == []
+    # skipping works when asked and reports the row
+    res = imstack(path, np.vstack([pos, [[ra[0] + 1.0, dec[0]]]]), stamp_size=32, skip_outside=True)
+    assert res.skipped_rows == [401] and res.n_positions == 400
+
+
+def test_blanked_pixels_are_excluded_per_pixel(tmp_path):
+    rng = np.random.default_rng(13)
+    path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=BEAM, noise=1e-3, n_side=6)
+    with fits.open(path) as h:
+        data = h[0].data.copy()
+        hdr = h[0].header
+    data[:, : int(px[0]) + 3] = np.nan  # a blanked strip through the first column of sources
+    fits.PrimaryHDU(data, header=hdr).writeto(tmp_path / "blank.fits")
+    res = imstack(tmp_path / "blank.fits", np.c_[ra, dec], stamp_size=32, weighting="none",
+                  subpixel="fourier", skip_outside=True)
+    # positions whose centre pixel is blanked are not covered; the rest still give the flux
+    assert res.n_positions == 30 and res.skipped_rows == [1 + 6 * k for k in range(6)]
+    assert res.flux_jy == pytest.approx(1.0, abs=5e-3)
+    assert kernels.SPLINE_NAN_GUARD > 0

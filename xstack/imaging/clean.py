@@ -203,7 +203,7 @@ def clean(dirty: np.ndarray, psf: np.ndarray, *, threshold: float, niter: int, g
 
 def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, niter: int,
                threshold: float = 0.0, gain: float = 0.1, mask: np.ndarray | None = None,
-               algorithm: str = "hogbom", cycle_factor: float = 1.5, max_major: int = 20,
+               algorithm: str = "hogbom", cycle_factor: float = 1.0, max_major: int = 30,
                weighting: str = "natural", robust: float = 0.0, wterm: bool = True,
                pbcor: bool = False, epsilon: float = 1e-6,
                partitions: str | Sequence[str] | None = None, nthreads: int = 0,
@@ -211,9 +211,11 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
     """Image a store and CLEAN it with major/minor cycles.
 
     Each minor cycle cleans the residual image down to
-    ``max(threshold, cycle_factor * sidelobe * peak)`` (sidelobe = largest PSF sidelobe, as in
-    CASA's cyclethreshold); each major cycle then recomputes the exact residual through ducc0
-    (predict the model, image it with the same weights, subtract from the dirty image).
+    ``max(threshold, f * peak)``, f = cycle_factor x (largest PSF sidelobe) clipped to
+    [0.05, 0.5] (CASA's cyclethreshold with a lower maximum: the image-plane minor cycle is
+    exact up to the PSF's truncation at the image edge); each major cycle then recomputes the
+    exact residual through ducc0 (predict the model, image it with the same weights, subtract
+    from the dirty image).
 
     Returns
     -------
@@ -238,7 +240,7 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
     done, n_major, history = 0, 0, []
     _, _, peak = kernels._abs_peak(res, mask_b)
     while done < niter and peak > threshold and n_major < max_major:
-        cycle_threshold = max(threshold, min(0.8, cycle_factor * sidelobe) * peak)
+        cycle_threshold = max(threshold, float(np.clip(cycle_factor * sidelobe, 0.05, 0.5)) * peak)
         n = _minor(res, psf, model, mask_b, gain, cycle_threshold, niter - done, algorithm, sidelobe)
         done += n
         # exact residual: imaging is linear, dirty(V - P(model)) = dirty - dirty(P(model))

@@ -1,0 +1,83 @@
+"""``xstack image`` and ``xstack subtract`` from the command line."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from _imaging_helpers import make_sky_partition, offset_position
+from astropy.io import fits
+from astropy.table import Table
+
+from xstack.cli import main
+from xstack.imaging.fitsio import read_image
+from xstack.schema import open_store, write_store
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    src = offset_position(-20.0, 16.0)  # west and north
+    ds = make_sky_partition([(src[0], src[1], 0.8)], n_time=10, n_ant=10, noise=0.2, seed=3)
+    write_store({"spw0_field0": ds}, d / "d.zarr")
+    return d, src
+
+
+def test_image_cli_outputs(store, capsys):
+    d, src = store
+    out = d / "img.fits"
+    rc = main(["image", str(d / "d.zarr"), str(out), "--size", "64",
+               "--cell", "2", "--niter", "200", "--threshold", "20mJy", "--json", "--png",
+               "--no-progress"])
+    assert rc == 0
+    payload = json.loads(capsys.readouterr().out)
+    files = payload["files"]
+    assert set(files) == {"image", "psf", "residual", "model", "png"}
+    for f in files.values():
+        assert (d / f.split("/")[-1]).exists()
+    assert files["psf"].endswith("img.psf.fits")
+    data, wcs, header = read_image(out)
+    y, x = np.unravel_index(np.nanargmax(data), data.shape)
+    world = wcs.pixel_to_world(x, y)
+    from astropy import units as u
+    from astropy.coordinates import SkyCoord
+
+    assert world.separation(SkyCoord(src[0] * u.rad, src[1] * u.rad)).arcsec < 1.5
+    assert payload["peak_jy_per_beam"] == pytest.approx(0.8, rel=0.05)
+    assert payload["n_components"] > 0
+    assert len(payload["beam_arcsec"]) == 2
+    assert fits.getheader(files["model"])["BUNIT"] == "Jy/pixel"
+    assert fits.getheader(files["psf"])["BUNIT"] == ""
+    psf = read_image(files["psf"])[0]
+    assert psf[32, 32] == pytest.approx(1.0, abs=1e-5)
+    # existing outputs are not overwritten without --overwrite
+    rc = main(["image", str(d / "d.zarr"), str(out), "--size", "64", "--cell", "2", "--no-progress"])
+    assert rc == 1
+    assert "exists" in capsys.readouterr().err
+
+
+def test_subtract_cli(store, capsys, tmp_path):
+    d, src = store
+    cat = tmp_path / "c.csv"
+    Table({"ra": [math.degrees(src[0])], "dec": [math.degrees(src[1])], "flux": [0.8]}).write(cat)
+    out = tmp_path / "r.zarr"
+    rc = main(["subtract", str(d / "d.zarr"), str(cat), str(out), "--primary-beam", "none",
+               "--no-progress"])
+    assert rc == 0
+    res = open_store(out)["spw0_field0"].to_dataset().VISIBILITY.values
+    assert abs(res[..., 0].real.mean()) < 5 * 0.2 / math.sqrt(res[..., 0].size)
+    rc = main(["subtract", str(d / "d.zarr"), str(cat), str(out), "--no-progress"])
+    assert rc == 1 and "exists" in capsys.readouterr().err
+
+
+def test_image_cli_errors(store, capsys, tmp_path):
+    d, _ = store
+    rc = main(["image", str(d / "d.zarr"), str(tmp_path / "x.fits"), "--size", "31", "--cell", "1",
+               "--no-progress"])
+    assert rc == 1 and "even" in capsys.readouterr().err
+    rc = main(["image", str(tmp_path / "none.zarr"), str(tmp_path / "x.fits"), "--size", "32",
+               "--cell", "1", "--no-progress"])
+    assert rc == 1 and "none.zarr" in capsys.readouterr().err
+    assert not list(tmp_path.glob("x*"))

@@ -1,0 +1,349 @@
+"""MeasurementSet -> xstack zarr store (``xstack convert``).
+
+The MS is read in row blocks: one dask task per (partition, time chunk, baseline chunk) reads
+its rows with python-casacore under a process-wide lock and scatters them into the dense
+(time, baseline_id, frequency, polarization) grid of the xstack schema; the store is written
+through :func:`xstack.schema.write_store` (atomic: temporary name, completion flag last,
+rename), which computes the chunks a few at a time. Peak memory is therefore a few chunks
+plus a small per-row index (~40 bytes per MS row), never the whole MS.
+
+Partitions are one per (spectral window, field) - strictly per DATA_DESC_ID - and one per
+scan as well where a single time grid would be irregular: scans with different integration
+times, or the same (time, baseline) cell more than once.
+"""
+
+from __future__ import annotations
+
+import operator
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from xstack._atomic import check_output
+from xstack.errors import XstackError
+from xstack.io import msread
+from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name, write_store
+
+#: Visibility columns accepted by ``datacolumn`` (any other complex array column also works).
+DATA_COLUMNS = ("DATA", "CORRECTED_DATA", "MODEL_DATA")
+
+_INDEX_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "SCAN_NUMBER",
+                  "INTERVAL")
+
+
+@dataclass
+class _Plan:
+    """One partition: its rows and the (time, baseline) grid they fall on."""
+
+    name: str
+    ddid: int
+    field_id: int
+    scan: int | None
+    rows: np.ndarray  # MS row numbers, sorted by time index
+    t_index: np.ndarray
+    b_index: np.ndarray
+    times: np.ndarray
+    scan_of_time: np.ndarray
+    antenna1: np.ndarray
+    antenna2: np.ndarray
+    interval: float
+
+
+def parse_chunks(text: str | Mapping[str, int] | None) -> dict[str, int]:
+    """Parse ``"time=N,baseline_id=M"`` (or a mapping) into validated chunk sizes."""
+    if text is None or text == "":
+        return {}
+    if isinstance(text, str):
+        out: dict[str, Any] = {}
+        for item in text.split(","):
+            key, sep, val = item.partition("=")
+            if not sep:
+                raise XstackError(f"bad chunk specification {item!r} (expected NAME=N, e.g. time=100)")
+            out[key.strip()] = val.strip()
+    else:
+        out = dict(text)
+    chunks: dict[str, int] = {}
+    for key, val in out.items():
+        if key not in ("time", "baseline_id"):
+            raise XstackError(f"cannot chunk dimension {key!r} (only time and baseline_id; "
+                              "frequency and polarization stay whole)")
+        if isinstance(val, str) and val.strip().isdigit():
+            n = int(val.strip())
+        elif isinstance(val, (int, np.integer)) and not isinstance(val, bool):
+            n = int(val)
+        else:
+            n = 0
+        if n <= 0:
+            raise XstackError(f"chunk size for {key} must be a positive integer, got {val!r}")
+        chunks[key] = n
+    return chunks
+
+
+def _check_datacolumn(path: str, datacolumn: str) -> tuple[str, str]:
+    """Validate the data column; return (column name, numpy complex dtype name)."""
+    col = str(datacolumn).upper()
+    info = msread.column_info(path, col)
+    if info is None:
+        if col in DATA_COLUMNS:
+            raise XstackError(f"{path}: the MS has no {col} column")
+        raise XstackError(f"unknown data column {datacolumn!r} (choose DATA, CORRECTED_DATA or MODEL_DATA)")
+    vtype = info.get("valueType", "")
+    if vtype not in ("complex", "dcomplex") or info.get("ndim", 0) not in (2, -1):
+        raise XstackError(f"{datacolumn!r} is not a visibility column ({vtype} array)")
+    return col, ("complex128" if vtype == "dcomplex" else "complex64")
+
+
+def _plan_partitions(index: dict[str, np.ndarray], meta: msread.MSMeta, where: str) -> list[_Plan]:
+    """Group rows into partitions and place every row on its partition's grid."""
+    time, a1, a2 = index["TIME"], index["ANTENNA1"], index["ANTENNA2"]
+    ddid, fid = index["DATA_DESC_ID"], index["FIELD_ID"]
+    nrow = time.size
+    scan = index.get("SCAN_NUMBER", np.zeros(nrow, np.int32))
+    interval = index.get("INTERVAL", np.zeros(nrow))
+    if ddid.size and (ddid.min() < 0 or ddid.max() >= meta.ddid_spw.size):
+        raise XstackError(f"{where}: DATA_DESC_ID out of range of the DATA_DESCRIPTION table")
+    if fid.size and (fid.min() < 0 or fid.max() >= len(meta.field_names)):
+        raise XstackError(f"{where}: FIELD_ID out of range of the FIELD table")
+    n_ant = len(meta.antenna_names)
+    if max(a1.max(), a2.max()) >= n_ant or min(a1.min(), a2.min()) < 0:
+        raise XstackError(f"{where}: ANTENNA1/ANTENNA2 out of range of the ANTENNA table")
+
+    group_key = ddid.astype(np.int64) * (fid.max() + 1) + fid
+    order = np.argsort(group_key, kind="stable")
+    keys, starts = np.unique(group_key[order], return_index=True)
+    bounds = [*starts[1:], nrow]
+    plans: list[_Plan] = []
+    names: set[str] = set()
+    for _key, s0, s1 in zip(keys, starts, bounds):
+        grows = np.sort(order[s0:s1])
+        d, f = int(ddid[grows[0]]), int(fid[grows[0]])
+        gscans = scan[grows]
+        groups = [(None, grows)]
+        if np.unique(gscans).size > 1:
+            per_scan_interval = {int(s): np.unique(interval[grows[gscans == s]]) for s in np.unique(gscans)}
+            distinct = np.unique(np.concatenate(list(per_scan_interval.values())))
+            cells = np.unique(np.column_stack([time[grows], a1[grows], a2[grows]]), axis=0).shape[0]
+            if distinct.size > 1 or cells < grows.size:
+                groups = [(int(s), grows[gscans == s]) for s in np.unique(gscans)]
+        for s, rows in groups:
+            plan = _grid(rows, time, a1, a2, scan, interval, d, f, s, meta, where)
+            if plan.name in names:  # two data descriptions of one window (other polarizations)
+                plan.name = f"{plan.name}_ddid{d}"
+            names.add(plan.name)
+            plans.append(plan)
+    return plans
+
+
+def _grid(rows: np.ndarray, time: np.ndarray, a1: np.ndarray, a2: np.ndarray, scan: np.ndarray,
+          interval: np.ndarray, ddid: int, field_id: int, scan_id: int | None, meta: msread.MSMeta,
+          where: str) -> _Plan:
+    times, t_index = np.unique(time[rows], return_inverse=True)
+    pairs, b_index = np.unique(np.column_stack([a1[rows], a2[rows]]), axis=0, return_inverse=True)
+    b_index = b_index.ravel()
+    cell = t_index.astype(np.int64) * pairs.shape[0] + b_index
+    if np.unique(cell).size < cell.size:
+        raise XstackError(f"{where}: several rows for one (time, baseline) in DATA_DESC_ID {ddid}, "
+                          f"field {field_id}{'' if scan_id is None else f', scan {scan_id}'} "
+                          "(several arrays or observations mixed?)")
+    order = np.argsort(t_index, kind="stable")  # rows of a time chunk become contiguous
+    rows, t_index, b_index = rows[order], t_index[order], b_index[order]
+    scan_of_time = np.zeros(times.size, dtype=np.int32)
+    scan_of_time[t_index] = scan[rows]
+    spw = int(meta.ddid_spw[ddid])
+    ivals = interval[rows]
+    return _Plan(name=partition_name(spw, field_id, scan_id), ddid=ddid, field_id=field_id,
+                 scan=scan_id, rows=rows, t_index=t_index.astype(np.int64),
+                 b_index=b_index.astype(np.int64), times=times, scan_of_time=scan_of_time,
+                 antenna1=pairs[:, 0].astype(np.int32), antenna2=pairs[:, 1].astype(np.int32),
+                 interval=float(np.median(ivals)) if ivals.size else 0.0)
+
+
+def _block_spec(path: str, plan: _Plan, meta: msread.MSMeta, column: str, vis_dtype: str) -> msread.BlockSpec:
+    first, last = int(plan.rows.min()), int(plan.rows.max())
+
+    def defined(col: str) -> bool:
+        return msread.cell_defined(path, col, first) and msread.cell_defined(path, col, last)
+
+    if not defined(column):
+        raise XstackError(f"{path}: column {column} holds no data for DATA_DESC_ID {plan.ddid}")
+    if defined("WEIGHT_SPECTRUM"):
+        wsrc = "WEIGHT_SPECTRUM"
+    elif defined("WEIGHT"):
+        wsrc = "WEIGHT"
+    elif defined("SIGMA"):
+        wsrc = "SIGMA"
+    else:
+        wsrc = "NONE"
+    spw = int(meta.ddid_spw[plan.ddid])
+    return msread.BlockSpec(
+        path=path, data_column=column, n_channels=int(meta.spw_freqs[spw].size),
+        n_pols=len(meta.pol_names[int(meta.ddid_pol[plan.ddid])]), vis_dtype=vis_dtype,
+        weight_source=wsrc, flag_defined=defined("FLAG"),
+        has_flag_row=msread.column_info(path, "FLAG_ROW") is not None,
+        has_centroid=defined("TIME_CENTROID"), has_exposure=defined("EXPOSURE"))
+
+
+def _chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,
+                 chunks: Mapping[str, int]) -> tuple[int, int]:
+    """(time, baseline) chunk sizes: the user's, else ~DEFAULT_CHUNK_BYTES of VISIBILITY."""
+    per_bl = max(1, n_chan * n_pol * itemsize)
+    cb = chunks.get("baseline_id") or min(n_bl, max(1, DEFAULT_CHUNK_BYTES // per_bl))
+    ct = chunks.get("time") or max(1, DEFAULT_CHUNK_BYTES // (per_bl * cb))
+    return min(max(1, ct), max(n_time, 1)), min(max(1, cb), max(n_bl, 1))
+
+
+def _lazy_partition(plan: _Plan, spec: msread.BlockSpec, ct: int, cb: int) -> dict[str, Any]:
+    """Dask arrays of one partition: one casacore read task per (time, baseline) chunk."""
+    import dask.array as da
+    from dask.base import tokenize
+    from dask.highlevelgraph import HighLevelGraph
+
+    nt, nb = plan.times.size, plan.antenna1.size
+    t_edges = list(range(0, nt, ct)) + [nt]
+    b_edges = list(range(0, nb, cb)) + [nb]
+    token = tokenize(spec, plan.name, plan.rows, ct, cb)
+    read_name = f"ms-read-{token}"
+    read_layer: dict = {}
+    # rows are sorted by time index, so a time chunk is a slice of them
+    t_starts = np.searchsorted(plan.t_index, t_edges)
+    for i in range(len(t_edges) - 1):
+        r0, r1 = t_starts[i], t_starts[i + 1]
+        rows, ti, bi = plan.rows[r0:r1], plan.t_index[r0:r1] - t_edges[i], plan.b_index[r0:r1]
+        for j in range(len(b_edges) - 1):
+            sel = (bi >= b_edges[j]) & (bi < b_edges[j + 1])
+            o = np.argsort(rows[sel], kind="stable")  # casacore reads rows in ascending order
+            read_layer[(read_name, i, j)] = (
+                msread.read_block, spec, rows[sel][o], ti[sel][o], bi[sel][o] - b_edges[j],
+                t_edges[i + 1] - t_edges[i], b_edges[j + 1] - b_edges[j],
+                plan.times[t_edges[i]:t_edges[i + 1]])
+    tchunks = tuple(np.diff(t_edges).tolist())
+    bchunks = tuple(np.diff(b_edges).tolist())
+    nc, npol = spec.n_channels, spec.n_pols
+    layout = {
+        "VISIBILITY": ((tchunks, bchunks, (nc,), (npol,)), np.dtype(spec.vis_dtype)),
+        "WEIGHT": ((tchunks, bchunks, (nc,), (npol,)), np.dtype(np.float32)),
+        "FLAG": ((tchunks, bchunks, (nc,), (npol,)), np.dtype(bool)),
+        "UVW": ((tchunks, bchunks, (3,)), np.dtype(np.float64)),
+        "TIME_CENTROID": ((tchunks, bchunks), np.dtype(np.float64)),
+        "EFFECTIVE_INTEGRATION_TIME": ((tchunks, bchunks), np.dtype(np.float64)),
+    }
+    out = {}
+    for var, (chunks, dtype) in layout.items():
+        name = f"{var.lower()}-{token}"
+        extra = (0,) * (len(chunks) - 2)
+        layer = {(name, i, j, *extra): (operator.getitem, (read_name, i, j), var)
+                 for i in range(len(tchunks)) for j in range(len(bchunks))}
+        graph = HighLevelGraph({read_name: read_layer, name: layer},
+                               {read_name: set(), name: {read_name}})
+        out[var] = da.Array(graph, name, chunks, dtype=dtype)
+    return out
+
+
+def convert_ms(
+    ms: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    datacolumn: str = "DATA",
+    chunks: Mapping[str, int] | str | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> Path:
+    """Convert a MeasurementSet into an xstack zarr store (one partition per window x field).
+
+    Parameters
+    ----------
+    ms
+        Path of the MeasurementSet (read only, never modified).
+    out
+        Output ``.zarr`` directory; written atomically (temporary name, then renamed).
+    datacolumn
+        Visibility column: ``DATA``, ``CORRECTED_DATA`` or ``MODEL_DATA``.
+    chunks
+        ``{"time": N, "baseline_id": M}`` (or ``"time=N,baseline_id=M"``); missing sizes are
+        chosen so a VISIBILITY chunk holds ~128 MB. Frequency and polarization stay whole.
+    overwrite
+        Replace an existing ``out``.
+    progress
+        Progress bar on stderr.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out``. Open it with :func:`xstack.open_store`.
+
+    Notes
+    -----
+    WEIGHT comes from WEIGHT_SPECTRUM where it holds data, else WEIGHT (broadcast over
+    channels), else 1/SIGMA^2; FLAG is FLAG or FLAG_ROW. Missing (time, baseline) cells are
+    NaN in VISIBILITY, zero in WEIGHT, flagged, and zero in UVW. Phase centres are
+    converted to ICRS (J2000 is taken as ICRS). Visibilities stay complex128 if the column
+    is double precision.
+
+    Raises
+    ------
+    XstackError
+        If ``ms`` is not a MeasurementSet, the column does not exist, the MS has no rows,
+        or ``out`` exists without ``overwrite``. Nothing is written then.
+    """
+    import dask
+
+    from xstack import __version__
+
+    ms_path = msread.check_ms(ms)
+    out = Path(out)
+    check_output(out, overwrite)
+    chunk_sizes = parse_chunks(chunks)
+    path = str(ms_path.resolve())
+    if os.path.abspath(out) == path:
+        raise XstackError("the output store must not be the MeasurementSet itself")
+    try:
+        column, vis_dtype = _check_datacolumn(path, datacolumn)
+        meta = msread.read_meta(path)
+        index = msread.read_index(path, _INDEX_COLUMNS)
+        if index["TIME"].size == 0:
+            raise XstackError(f"{ms}: the MeasurementSet has no rows")
+        plans = _plan_partitions(index, meta, str(ms))
+        del index
+        itemsize = np.dtype(vis_dtype).itemsize
+        partitions = {}
+        for plan in plans:
+            spec = _block_spec(path, plan, meta, column, vis_dtype)
+            ct, cb = _chunk_sizes(plan.times.size, plan.antenna1.size, spec.n_channels, spec.n_pols,
+                                  itemsize, chunk_sizes)
+            arrays = _lazy_partition(plan, spec, ct, cb)
+            spw = int(meta.ddid_spw[plan.ddid])
+            pols = meta.pol_names[int(meta.ddid_pol[plan.ddid])]
+            attrs = {"data_description_id": plan.ddid, "weight_source": spec.weight_source,
+                     "spectral_window_name": meta.spw_names[spw],
+                     "source_phase_center_frame": meta.phase_center_frame}
+            if plan.scan is not None:
+                attrs["scan_number"] = plan.scan
+            ds = new_partition(
+                visibility=arrays["VISIBILITY"], weight=arrays["WEIGHT"], flag=arrays["FLAG"],
+                uvw=arrays["UVW"], time=plan.times, antenna1=plan.antenna1, antenna2=plan.antenna2,
+                antenna_names=meta.antenna_names, antenna_positions=meta.antenna_positions,
+                dish_diameters=meta.dish_diameters, frequency=meta.spw_freqs[spw],
+                channel_width=meta.spw_widths[spw], polarization=pols,
+                phase_center=tuple(meta.phase_centers[plan.field_id]),
+                field_name=meta.field_names[plan.field_id], field_id=plan.field_id,
+                spectral_window_id=spw, telescope_name=meta.telescope_name,
+                integration_time=plan.interval, attrs=attrs)
+            ds = ds.assign_coords(scan_number=("time", plan.scan_of_time))
+            ds = ds.assign(
+                TIME_CENTROID=(("time", "baseline_id"), arrays["TIME_CENTROID"],
+                               {"units": "s", "scale": "utc", "format": "mjd_seconds"}),
+                EFFECTIVE_INTEGRATION_TIME=(("time", "baseline_id"), arrays["EFFECTIVE_INTEGRATION_TIME"],
+                                            {"units": "s"}))
+            partitions[plan.name] = ds
+        root_attrs = {"source_ms": path, "data_column": column, "xstack_version": __version__,
+                      "created_by": f"xstack {__version__} convert_ms"}
+        # casacore reads serialise on a lock; a second thread compresses and writes meanwhile
+        with dask.config.set(scheduler="threads", num_workers=2):
+            return write_store(partitions, out, overwrite=overwrite, attrs=root_attrs,
+                               progress=progress, description=f"convert {ms_path.name}")
+    finally:
+        msread.close_tables(path)

@@ -1,0 +1,21 @@
+"""uv-stacking (Lindroos et al. 2015, section 3.3): phase-rotate visibilities to many positions.
+
+Public API: :func:`xstack.uvstack.stack.uvstack`, :class:`~xstack.uvstack.stack.StackResult`,
+:func:`xstack.uvstack.stack.uv_profile`, :func:`xstack.uvstack.stack.plot_uv_profile`; the
+numerical kernels (numpy/numba only) are in :mod:`xstack.uvstack.kernels`, the plain-numpy
+reference of the whole stack in :mod:`xstack.uvstack.reference`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["StackResult", "plot_uv_profile", "uv_profile", "uvstack"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in __all__:
+        from xstack.uvstack import stack
+
+        return getattr(stack, name)
+    raise AttributeError(name)

@@ -37,11 +37,17 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 
 import numba
 import numpy as np
 
 from xstack.coords import SPEED_OF_LIGHT
+
+# The kernel already uses every core (numba prange); calls from several dask threads are
+# serialised, which also keeps numba's default 'workqueue' threading layer (not thread-safe
+# for concurrent launches) safe.
+_KERNEL_LOCK = threading.Lock()
 
 #: Re-seed the channel recurrence exactly every this many channels.
 DEFAULT_RESEED = 16
@@ -200,8 +206,19 @@ def stack_phasor(uvw, frequency, l, m, n_minus_1, weight, inv_attenuation, *,
     """
     uvw, frequency, weight, inv_att = _check_inputs(uvw, frequency, l, m, n_minus_1, weight,
                                                     inv_attenuation)
+    coef = normalised_coefficients(weight, inv_att, frequency.size)
+    return phasor_from_coefficients(uvw, frequency, l, m, n_minus_1, coef, reseed=reseed,
+                                    engine=engine, epsilon=epsilon, nthreads=nthreads)
+
+
+def phasor_from_coefficients(uvw, frequency, l, m, n_minus_1, coef, *,
+                             reseed: int = DEFAULT_RESEED, engine: str = "numba",
+                             epsilon: float = 1e-12, nthreads: int = 0) -> np.ndarray:
+    """:func:`stack_phasor` with already normalised ``coef[k, c] = W_k A_kc^-1 / sum W``."""
+    uvw = np.asarray(uvw)
+    frequency = np.asarray(frequency)
     nchan = frequency.size
-    coef = normalised_coefficients(weight, inv_att, nchan)
+    coef = np.asarray(coef, dtype=np.float64)
     if engine == "numpy":
         return stack_phasor_numpy(uvw, frequency, l, m, n_minus_1, coef)
     if engine == "nufft":
@@ -215,20 +232,21 @@ def stack_phasor(uvw, frequency, l, m, n_minus_1, weight, inv_attenuation, *,
     l_c = np.ascontiguousarray(l, dtype=dt)
     m_c = np.ascontiguousarray(m, dtype=dt)
     n_c = np.ascontiguousarray(n_minus_1, dtype=dt)
-    fc = np.ascontiguousarray(np.asarray(frequency, dtype=np.float64) / SPEED_OF_LIGHT).astype(dt)
+    fc = (np.asarray(frequency, dtype=np.float64) / SPEED_OF_LIGHT).astype(dt)
     nrow = uvw_c.shape[0]
-    out_re = np.empty((nrow, nchan))
-    out_im = np.empty((nrow, nchan))
     if nrow == 0 or l_c.size == 0:
         return np.zeros((nrow, nchan), dtype=np.complex128)
-    umax = float(np.max(np.abs(uvw_c))) if nrow else 0.0
+    out_re = np.empty((nrow, nchan))
+    out_im = np.empty((nrow, nchan))
+    umax = float(np.max(np.abs(uvw_c)))
     lmax = float(max(np.max(np.abs(l_c)), np.max(np.abs(m_c)), np.max(np.abs(n_c))))
     even = channels_evenly_spaced(frequency, umax, lmax)
-    step = dt(fc[1] - fc[0]) if nchan > 1 else dt(0.0)
-    if even:  # the recurrence step must be the exact spacing of the (float) grid used
-        step = dt((frequency[1] - frequency[0]) / SPEED_OF_LIGHT)
-    _phasor_numba(uvw_c, fc, l_c, m_c, n_c, np.ascontiguousarray(coef.T), step, even,
-                  max(1, int(reseed)), out_re, out_im)
+    # the recurrence step must be the exact spacing of the frequency grid
+    step = dt((frequency[1] - frequency[0]) / SPEED_OF_LIGHT) if nchan > 1 else dt(0.0)
+    coef_t = np.ascontiguousarray(coef.T)
+    with _KERNEL_LOCK:
+        _phasor_numba(uvw_c, fc, l_c, m_c, n_c, coef_t, step, even, max(1, int(reseed)),
+                      out_re, out_im)
     out = np.empty((nrow, nchan), dtype=np.complex128)
     out.real = out_re
     out.imag = out_im

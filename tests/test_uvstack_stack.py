@@ -1,0 +1,176 @@
+"""uvstack(): exactness against analytic truth and the plain-numpy reference, outputs, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+from _uvstack_helpers import VLA_CENTER, make_stack_partition
+from astropy.table import Table
+
+from xstack.beams import standard_beam
+from xstack.coords import SPEED_OF_LIGHT, lm_to_radec, radec_to_lmn
+from xstack.errors import XstackError
+from xstack.schema import open_store
+from xstack.uvstack.reference import reference_uvstack
+from xstack.uvstack.stack import uvstack
+
+
+def _tree(**parts):
+    return xr.DataTree.from_dict(parts)
+
+
+def _cat(ra, dec, **cols):
+    t = Table({"ra": np.degrees(np.atleast_1d(ra)), "dec": np.degrees(np.atleast_1d(dec))})
+    for k, v in cols.items():
+        t[k] = v
+    return t
+
+
+def _offsets(center, rng, n, radius):
+    l = rng.uniform(-radius, radius, n)
+    m = rng.uniform(-radius, radius, n)
+    return lm_to_radec(l, m, *center)
+
+
+@pytest.mark.parametrize("weighting,beam", [("none", "none"), ("pb", "auto"), ("pb", "gaussian"),
+                                            ("column", "airy"), ("sigma2", "auto")])
+def test_equals_numpy_reference_on_random_data(rng, weighting, beam):
+    ds = make_stack_partition(n_time=8, n_ant=6, n_chan=5, sigma=0.3, seed=3, flag_frac=0.1)
+    ra, dec = _offsets(VLA_CENTER, rng, 17, 0.004)
+    cat = _cat(ra, dec, weight=rng.uniform(0.2, 2.0, 17))
+    sigma = rng.uniform(0.5, 2.0, 17) if weighting == "sigma2" else None
+    res = uvstack(_tree(p=ds), cat, weighting=weighting, primary_beam=beam, sigma=sigma)
+    ref = reference_uvstack([("p", ds)], cat["ra"], cat["dec"], weighting=weighting,
+                            primary_beam=beam, column_weight=cat["weight"], sigma=sigma)
+    assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-9, abs=1e-12)
+    assert res.flux_err_jy == pytest.approx(ref["flux_err_jy"], rel=1e-9)
+    assert res.n_visibilities == ref["n_visibilities"]
+    got = res.stacked["p"]["VISIBILITY"].values
+    want = ref["stacked"]["p"]
+    ok = np.isfinite(want)
+    np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=1e-9 * np.abs(want[ok]).max())
+
+
+def test_single_position_is_plain_phase_shift():
+    ds = make_stack_partition(n_time=6, n_ant=5, n_chan=3, sigma=1.0, seed=5)
+    ra, dec = VLA_CENTER[0] + 0.003, VLA_CENTER[1] - 0.002
+    res = uvstack(_tree(p=ds), _cat(ra, dec), primary_beam="none", weighting="none")
+    l, m, n, n1 = radec_to_lmn(ra, dec, *VLA_CENTER)
+    uvw = ds["UVW"].values
+    d = uvw[..., 0] * l + uvw[..., 1] * m + uvw[..., 2] * n1
+    ph = np.exp(-2j * np.pi * d[..., None] * ds["frequency"].values / SPEED_OF_LIGHT)
+    want = ds["VISIBILITY"].values * ph[..., None]
+    np.testing.assert_allclose(res.stacked["p"]["VISIBILITY"].values, want, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(res.stacked["p"]["UVW"].values, uvw)
+    np.testing.assert_array_equal(res.stacked["p"]["WEIGHT"].values, ds["WEIGHT"].values)
+
+
+def _isolated_pointings(fluxes, separation=0.02, telescope="ALMA", dish=12.0, freq0=230e9):
+    """One pointing per source, far apart (beyond the PB cutoff of the others); the data hold
+    the primary-beam attenuated source (A S), noiseless."""
+    beam = standard_beam(telescope, dish)
+    parts, ras, decs = {}, [], []
+    for i, s in enumerate(fluxes):
+        center = (VLA_CENTER[0] + i * separation, VLA_CENTER[1])
+        ra, dec = lm_to_radec(2e-5 * (i + 1), -1.5e-5 * i, *center)
+        theta = np.arccos(np.sin(dec) * np.sin(center[1])
+                          + np.cos(dec) * np.cos(center[1]) * np.cos(ra - center[0]))
+        freqs = freq0 + 25e6 * np.arange(3)
+        # attenuated flux per channel: build per channel by summing channel-specific sources
+        ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, freq0=freq0, extent_m=150.0,
+                                  phase_center=center, sources=[(ra, dec, 1.0)], seed=10 + i,
+                                  telescope=telescope, dish=dish, weight_scale=1.0, field_id=i,
+                                  pols=("XX", "YY"))
+        att = beam(theta, freqs)
+        ds["VISIBILITY"] = ds["VISIBILITY"] * (s * att)[None, None, :, None]
+        parts[f"spw0_field{i}"] = ds
+        ras.append(ra)
+        decs.append(dec)
+    return parts, np.array(ras), np.array(decs)
+
+
+def test_flux_equals_mean_input_flux_mosaic():
+    fluxes = [1e-3, 2.5e-3, 0.4e-3]
+    parts, ra, dec = _isolated_pointings(fluxes)
+    res = uvstack(xr.DataTree.from_dict(parts), _cat(ra, dec), weighting="none")
+    assert res.flux_jy == pytest.approx(np.mean(fluxes), rel=1e-6)
+    assert res.n_positions == 3
+    assert list(res.positions["n_pointings"]) == [1, 1, 1]
+    # the same sources as separate datasets stacked together
+    trees = [xr.DataTree.from_dict({k: v}) for k, v in parts.items()]
+    res2 = uvstack(trees, _cat(ra, dec), weighting="none")
+    assert res2.flux_jy == pytest.approx(np.mean(fluxes), rel=1e-6)
+    assert len(res2.stacked) == 3
+
+
+def test_mosaic_weights_corrected_by_sum_of_position_weights():
+    """Pointing 0 holds 3 positions, pointing 1 one: visibilities of 0 weigh 3x (none)."""
+    parts, ra, dec = _isolated_pointings([1e-3, 2e-3])
+    c0 = parts["spw0_field0"].attrs["phase_center"]
+    # two more positions in pointing 0, at the source (exact duplicates of position 0)
+    ra3 = np.concatenate([ra, [ra[0], ra[0]]])
+    dec3 = np.concatenate([dec, [dec[0], dec[0]]])
+    res = uvstack(xr.DataTree.from_dict(parts), _cat(ra3, dec3), weighting="none")
+    assert res.stacked["spw0_field0"].attrs["uvstack_sum_weight"] == 3.0
+    np.testing.assert_allclose(res.stacked["spw0_field0"]["WEIGHT"].values,
+                               3.0 * parts["spw0_field0"]["WEIGHT"].values)
+    assert res.flux_jy == pytest.approx((3 * 1e-3 + 2e-3) / 4, rel=1e-6)
+    assert c0 == parts["spw0_field0"].attrs["phase_center"]
+
+
+def test_output_store(tmp_path, rng):
+    ds = make_stack_partition(n_time=6, n_ant=5, n_chan=3, sigma=1.0, seed=2)
+    ra, dec = _offsets(VLA_CENTER, rng, 4, 0.003)
+    out = tmp_path / "stacked.zarr"
+    res = uvstack(_tree(spw0_field0=ds), _cat(ra, dec), out=out)
+    tree = open_store(out)
+    st = tree["spw0_field0"].to_dataset()
+    assert tree.attrs["xstack_kind"] == "stacked"
+    np.testing.assert_array_equal(st["UVW"].values, ds["UVW"].values)
+    np.testing.assert_allclose(st["VISIBILITY"].values, res.stacked["spw0_field0"]["VISIBILITY"].values)
+    pc = st.attrs["phase_center"]
+    assert np.degrees(pc) == pytest.approx(res.options["stack_center_deg"])
+    assert st.attrs["original_phase_center"] == list(VLA_CENTER)
+    np.testing.assert_allclose(st["STACK_POSITION_RA"].values, np.degrees(ra))
+    assert tree.attrs["uvstack"]["flux_jy"] == pytest.approx(res.flux_jy)
+    with pytest.raises(XstackError, match="exists"):
+        uvstack(_tree(spw0_field0=ds), _cat(ra, dec), out=out)
+    # restacking the written store at its own phase centre gives the same flux
+    res2 = uvstack(out, _cat(*pc), primary_beam="none", weighting="none")
+    assert res2.flux_jy == pytest.approx(res.flux_jy, rel=1e-6)
+
+
+def test_uncovered_positions_reported_and_all_outside_rejected():
+    ds = make_stack_partition(n_time=4, n_ant=5, n_chan=2, sigma=1.0)
+    far = (VLA_CENTER[0] + 0.2, VLA_CENTER[1])
+    with pytest.warns(UserWarning, match="1 of 2 positions"):
+        res = uvstack(_tree(p=ds), _cat([VLA_CENTER[0], far[0]], [VLA_CENTER[1], far[1]]))
+    assert len(res.uncovered) == 1 and res.n_positions == 1
+    assert res.uncovered["ra"][0] == pytest.approx(np.degrees(far[0]))
+    with pytest.raises(XstackError, match="none of the 1 positions"):
+        uvstack(_tree(p=ds), _cat(*far))
+
+
+def test_bad_options():
+    ds = make_stack_partition(n_time=4, n_ant=5, n_chan=2, sigma=1.0)
+    cat = _cat(*VLA_CENTER)
+    for kwargs, msg in [({"weighting": "bogus"}, "weighting"), ({"engine": "gpu"}, "engine"),
+                        ({"primary_beam": "square"}, "primary beam"),
+                        ({"weighting": "column"}, "weight"), ({"uvmin": "3parsec"}, "unit"),
+                        ({"pb_cutoff": 1.5}, "pb_cutoff"),
+                        ({"primary_beam": "/nonexistent/pb.fits"}, "no such")]:
+        with pytest.raises(XstackError, match=msg):
+            uvstack(_tree(p=ds), cat, **kwargs)
+
+
+def test_uv_range_selects_visibilities():
+    ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=4)
+    cat = _cat(*VLA_CENTER)
+    full = uvstack(_tree(p=ds), cat, primary_beam="none")
+    for lo, hi in [("500m", "2000m"), ("3klambda", "10klambda"), (None, "1.5km")]:
+        res = uvstack(_tree(p=ds), cat, primary_beam="none", uvmin=lo, uvmax=hi)
+        ref = reference_uvstack([("p", ds)], cat["ra"], cat["dec"], uvmin=lo, uvmax=hi)
+        assert 0 < res.n_visibilities < full.n_visibilities
+        assert res.n_visibilities == ref["n_visibilities"]
+        assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-9)

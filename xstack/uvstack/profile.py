@@ -1,0 +1,224 @@
+"""uv-profile of a stacked dataset: Re V and Im V in bins of uv distance (paper Figs 5-7).
+
+Bins are in uv distance measured in wavelengths (per channel: sqrt(u^2 + v^2) nu / c), since
+a source's visibility is a function of (u, v)/lambda. Every bin holds the weighted mean of Re V
+and Im V over the unflagged selected polarizations, and its standard error estimated from the
+weighted scatter inside the bin: ``sqrt(sum w^2 (x - mean)^2) / sum w`` (honest whatever the
+normalisation of the stored weights, as long as there are several visibilities per bin).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import dask
+import dask.array as da
+import numpy as np
+import xarray as xr
+from astropy import units as u
+from astropy.table import Table
+
+from xstack.coords import SPEED_OF_LIGHT, parse_distance
+from xstack.errors import XstackError
+
+_PARALLEL = ("XX", "YY", "RR", "LL")
+_NSUM = 8  # sum w, w Re, w Im, w^2, w^2 Re, w^2 Re^2, w^2 Im, w^2 Im^2 ; + count
+
+
+def _partitions(stacked: Any) -> list[xr.Dataset]:
+    from xstack.schema import iter_partitions, open_store
+
+    if hasattr(stacked, "stacked") and isinstance(stacked.stacked, dict):
+        return list(stacked.stacked.values())
+    if isinstance(stacked, dict):
+        return list(stacked.values())
+    if isinstance(stacked, xr.Dataset):
+        return [stacked]
+    if isinstance(stacked, (str, os.PathLike)):
+        stacked = open_store(stacked)
+    if isinstance(stacked, xr.DataTree):
+        return [ds for _, ds in iter_partitions(stacked)]
+    raise XstackError(f"cannot make a uv profile of {type(stacked).__name__}")
+
+
+def _block_range(uvw, frequency):
+    q = np.hypot(uvw[..., 0], uvw[..., 1]).ravel()
+    fmax = float(np.max(frequency)) / SPEED_OF_LIGHT
+    fmin = float(np.min(frequency)) / SPEED_OF_LIGHT
+    good = q > 0
+    if not good.any():
+        return np.array([[[np.inf, -np.inf]]])
+    return np.array([[[q[good].min() * fmin, q.max() * fmax]]])
+
+
+def _block_hist(vis, weight, flag, uvw, frequency, edges, pol_mask):
+    nt, nb, nc, npol = vis.shape
+    nbin = edges.size - 1
+    q = np.hypot(uvw[..., 0], uvw[..., 1])[..., None] * (np.asarray(frequency) / SPEED_OF_LIGHT)
+    idx = np.searchsorted(edges, q, side="right") - 1  # (t, b, c)
+    idx = np.where((q >= edges[0]) & (q <= edges[-1]), np.clip(idx, 0, nbin - 1), -1)
+    good = (~flag) & pol_mask[None, None, None, :] & (weight > 0) & np.isfinite(vis)
+    good &= (idx >= 0)[..., None]
+    w = np.where(good, weight.astype(np.float64), 0.0)
+    re = np.where(good, vis.real, 0.0).astype(np.float64)
+    im = np.where(good, vis.imag, 0.0).astype(np.float64)
+    b = np.broadcast_to(np.where(idx >= 0, idx, 0)[..., None], vis.shape).ravel()
+    w2 = w * w
+    cols = [w, w * re, w * im, w2, w2 * re, w2 * re * re, w2 * im, w2 * im * im,
+            good.astype(np.float64)]
+    out = np.stack([np.bincount(b, weights=c.ravel(), minlength=nbin) for c in cols], axis=1)
+    return out[None, None]
+
+
+def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any = None,
+               polarizations: Any = "parallel") -> Table:
+    """Re V and Im V of a stacked dataset in bins of uv distance.
+
+    Parameters
+    ----------
+    stacked
+        A :class:`~xstack.uvstack.stack.StackResult`, a dict of stacked partitions, a
+        DataTree or a stacked store path.
+    bins
+        Number of equal-width bins between the smallest and largest uv distance (or
+        ``uvmin``/``uvmax``), or an array of bin edges in kilo-wavelengths.
+    uvmin, uvmax
+        Range (``"20klambda"``, ``"5000m"``); metres are converted with the mean frequency.
+    polarizations
+        ``parallel`` (default), ``all`` or a list of correlation names.
+
+    Returns
+    -------
+    astropy.table.Table
+        Columns ``uvdist_klambda`` (bin centre), ``uvdist_m`` (centre at the mean
+        wavelength), ``bin_lo_klambda``, ``bin_hi_klambda``, ``re_jy``, ``re_err_jy``,
+        ``im_jy``, ``im_err_jy``, ``sum_weight``, ``count``. Empty bins hold NaN.
+    """
+    parts = _partitions(stacked)
+    if not parts:
+        raise XstackError("no stacked partitions")
+    fmean = float(np.mean(np.concatenate([np.asarray(ds["frequency"].values) for ds in parts])))
+    lam = SPEED_OF_LIGHT / fmean
+
+    def to_lambda(lim):
+        if lim is None:
+            return None
+        value, unit = parse_distance(lim)
+        return value if unit == "lambda" else value / lam
+
+    lo, hi = to_lambda(uvmin), to_lambda(uvmax)
+    if np.ndim(bins) == 0:
+        nbin = int(bins)
+        if nbin < 1:
+            raise XstackError("bins must be >= 1")
+        if lo is None or hi is None:
+            ranges = []
+            for ds in parts:
+                uvw = ds["UVW"].data
+                if not isinstance(uvw, da.Array):
+                    uvw = da.from_array(np.asarray(uvw))
+                ranges.append(da.map_blocks(_block_range, uvw, np.asarray(ds["frequency"].values),
+                                            dtype=float, chunks=((1,) * uvw.numblocks[0],
+                                                                 (1,) * uvw.numblocks[1], (2,))))
+            rs = dask.compute(*ranges)
+            qmin = min(float(np.min(r[..., 0])) for r in rs)
+            qmax = max(float(np.max(r[..., 1])) for r in rs)
+            lo = qmin if lo is None else lo
+            hi = qmax if hi is None else hi
+        if not hi > lo:
+            raise XstackError("empty uv range for the profile")
+        edges = np.linspace(lo, hi, nbin + 1)
+    else:
+        edges = np.asarray(bins, dtype=np.float64) * 1e3
+        if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+            raise XstackError("bin edges must be increasing")
+        nbin = edges.size - 1
+    graphs = []
+    for ds in parts:
+        pols = [str(p).upper() for p in ds["polarization"].values]
+        if polarizations == "parallel":
+            pmask = np.array([p in _PARALLEL for p in pols])
+        elif polarizations == "all":
+            pmask = np.ones(len(pols), bool)
+        else:
+            pmask = np.array([p in {str(x).upper() for x in polarizations} for p in pols])
+        arrs = []
+        for var in ("VISIBILITY", "WEIGHT", "FLAG"):
+            a = ds[var].data
+            arrs.append(a if isinstance(a, da.Array) else da.from_array(np.asarray(a)))
+        vis, wt, fl = arrs
+        vis = vis.rechunk({2: -1, 3: -1})
+        wt = wt.rechunk(vis.chunks)
+        fl = fl.rechunk(vis.chunks)
+        uvw = ds["UVW"].data
+        uvw = (uvw if isinstance(uvw, da.Array) else da.from_array(np.asarray(uvw)))
+        uvw = uvw.rechunk((vis.chunks[0], vis.chunks[1], -1))
+        h = da.blockwise(_block_hist, "tbsk", vis, "tbcp", wt, "tbcp", fl, "tbcp", uvw, "tbx",
+                         dtype=np.float64, concatenate=True, new_axes={"s": nbin, "k": _NSUM + 1},
+                         adjust_chunks={"t": 1, "b": 1}, frequency=np.asarray(ds["frequency"].values),
+                         edges=edges, pol_mask=pmask)
+        graphs.append(h.sum(axis=(0, 1)))
+    total = np.sum(dask.compute(*graphs), axis=0)
+    sw, swr, swi, sw2, sw2r, sw2rr, sw2i, sw2ii, count = total.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        re = swr / sw
+        im = swi / sw
+        var_re = np.clip(sw2rr - 2 * re * sw2r + re * re * sw2, 0, None) / sw**2
+        var_im = np.clip(sw2ii - 2 * im * sw2i + im * im * sw2, 0, None) / sw**2
+        # scatter of a single visibility is unknown: no error from one sample
+        var_re = np.where(count > 1, var_re * count / (count - 1), np.nan)
+        var_im = np.where(count > 1, var_im * count / (count - 1), np.nan)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    t = Table()
+    t["uvdist_klambda"] = centres / 1e3
+    t["uvdist_m"] = centres * lam
+    t["bin_lo_klambda"] = edges[:-1] / 1e3
+    t["bin_hi_klambda"] = edges[1:] / 1e3
+    t["re_jy"] = re
+    t["re_err_jy"] = np.sqrt(var_re)
+    t["im_jy"] = im
+    t["im_err_jy"] = np.sqrt(var_im)
+    t["sum_weight"] = sw
+    t["count"] = count.astype(np.int64)
+    t["uvdist_m"].unit = u.m
+    for c in ("re_jy", "re_err_jy", "im_jy", "im_err_jy"):
+        t[c].unit = u.Jy
+    t.meta["mean_frequency_hz"] = fmean
+    return t
+
+
+def plot_uv_profile(table: Table, path: str | os.PathLike, *, title: str | None = None,
+                    overwrite: bool = True, flux_jy: float | None = None) -> str:
+    """Plot Re V and Im V with error bars against uv distance (kλ) to a PNG (Agg backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    from xstack._atomic import atomic_output
+
+    fig = Figure(figsize=(6.4, 4.2), dpi=110)
+    ax = fig.add_subplot(111)
+    x = np.asarray(table["uvdist_klambda"])
+    scale, unit = 1e6, "µJy"
+    re = np.asarray(table["re_jy"])
+    if np.nanmax(np.abs(np.concatenate([re, [0.0]]))) > 1e-3:
+        scale, unit = 1e3, "mJy"
+    ax.errorbar(x, re * scale, yerr=np.asarray(table["re_err_jy"]) * scale, fmt="o", ms=4,
+                color="C0", label="Re V")
+    ax.errorbar(x, np.asarray(table["im_jy"]) * scale, yerr=np.asarray(table["im_err_jy"]) * scale,
+                fmt="s", ms=3, color="C3", alpha=0.6, label="Im V")
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    if flux_jy is not None:
+        ax.axhline(flux_jy * scale, color="C0", ls="--", lw=0.8, label="stacked flux")
+    ax.set_xlabel("uv distance [kλ]")
+    ax.set_ylabel(f"visibility [{unit}]")
+    if title:
+        ax.set_title(title)
+    ax.legend(frameon=False)
+    fig.tight_layout()
+    path = os.fspath(path)
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        fig.savefig(str(tmp), format="png")
+    return path

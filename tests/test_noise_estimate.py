@@ -1,0 +1,169 @@
+"""Noise and bias estimates against the true scatter of noise-only simulations."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from _fit_helpers import C, noise_field, point_sources_vis, stack_flux
+
+from xstack.beams import standard_beam
+from xstack.coords import angular_separation
+from xstack.errors import XstackError
+from xstack.noise.estimate import estimate_noise
+from xstack.noise.positions import random_positions
+
+CENTRE = (1.0, -0.5236)
+BEAM = standard_beam("VLA", 25.0)
+FIELD = dict(n_ant=20, extent_m=20e3)
+
+
+def _targets(n=60, seed=0, radius_arcmin=10.0, sep_arcsec=60.0):
+    ra, dec = random_positions(n, 1, np.array([CENTRE]), np.array([np.radians(radius_arcmin / 60)]),
+                               avoid_ra=np.zeros(0), avoid_dec=np.zeros(0),
+                               min_separation=np.radians(sep_arcsec / 3600),
+                               rng=np.random.default_rng(seed))
+    return ra[0], dec[0]
+
+
+def _true_scatter(ra, dec, uvw, freq):
+    """Exact std of the stacked flux over independent noise (sigma = 1, W = 1, 2 hands)."""
+    A = BEAM(angular_separation(ra, dec, *CENTRE)[:, None], freq[None, :])
+    from _fit_helpers import lmn
+
+    l, m, n1 = lmn(ra, dec, *CENTRE)
+    P = np.zeros(uvw.shape[:2] + (freq.size,), complex)
+    for k in range(ra.size):
+        d = uvw[..., 0] * l[k] + uvw[..., 1] * m[k] + uvw[..., 2] * n1[k]
+        P += np.exp(-2j * np.pi * d[..., None] * freq / C) / A[k]
+    P /= ra.size
+    return float(np.sqrt(2 * np.sum(np.abs(P) ** 2)) / (2 * P.size)), A
+
+
+def test_estimates_match_true_scatter():
+    ra, dec = _targets()
+    pos = (np.degrees(ra), np.degrees(dec))
+    ds0, uvw, freq = noise_field(0, **FIELD)
+    truth, A = _true_scatter(ra, dec, uvw, freq)
+    # the exact formula agrees with the scatter over independent simulations
+    sims = [stack_flux(ds.VISIBILITY.values, ds.WEIGHT.values, uvw, freq, ra, dec, CENTRE, 1 / A)
+            for ds in (noise_field(s, **FIELD)[0] for s in range(100, 160))]
+    assert np.std(sims, ddof=1) == pytest.approx(truth, rel=0.25)
+    for seed in (1, 2):
+        ds, _, _ = noise_field(seed, **FIELD)
+        for method in ("mc", "random", "bootstrap"):
+            res = estimate_noise(ds, pos, method=method, realizations=200, seed=seed,
+                                 flux=1e-3 if method == "mc" else None)
+            assert res.realizations == 200 and res.values.size == 200
+            assert res.noise_jy == pytest.approx(truth, rel=0.15), (method, seed)
+            # the targets' own stacked flux is the reference implementation's
+            ref = stack_flux(ds.VISIBILITY.values, ds.WEIGHT.values, uvw, freq, ra, dec, CENTRE,
+                             1 / A)
+            assert res.target_flux_jy == pytest.approx(ref, rel=1e-9, abs=1e-12)
+        ana = estimate_noise(ds, pos, method="analytic")
+        assert ana.noise_jy == pytest.approx(truth, rel=0.15)
+        assert ana.realizations == 0 and ana.bias_jy is None
+
+
+def test_mc_injection_equals_injecting_into_the_data():
+    """Stacking is linear: the analytic injection equals writing the fakes into the data."""
+    ra, dec = _targets(n=8)
+    ds, uvw, freq = noise_field(3, n_ant=8, n_time=6, extent_m=20e3)
+    res = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="mc", realizations=3,
+                         flux=np.linspace(1, 2, 8), seed=5)
+    vis = ds.VISIBILITY.values
+    for r in range(3):
+        fra, fdec = np.radians(res.positions_deg[r]).T
+        A = BEAM(angular_separation(fra, fdec, *CENTRE)[:, None], freq[None, :])
+        fake = np.zeros(vis.shape[:3], complex)
+        for c in range(freq.size):
+            fake[..., c] = point_sources_vis(uvw, freq[c:c + 1], fra, fdec,
+                                             res.injected_flux_jy[r] * A[:, c], CENTRE)[..., 0]
+        ref = stack_flux(vis + fake[..., None], ds.WEIGHT.values, uvw, freq, fra, fdec, CENTRE,
+                         1 / A)
+        assert res.values[r] == pytest.approx(ref, rel=1e-9)
+        # separations are respected
+        min_sep = np.radians(res.extra["min_separation_arcsec"] / 3600) * 0.999
+        sep = angular_separation(fra[:, None], fdec[:, None], fra[None], fdec[None])
+        assert np.all(sep[~np.eye(8, dtype=bool)] >= min_sep)
+        tsep = angular_separation(fra[:, None], fdec[:, None], ra[None], dec[None])
+        assert tsep.min() >= min_sep
+    assert np.allclose(np.sort(res.injected_flux_jy[0]), np.linspace(1, 2, 8))
+
+
+def test_mc_finds_bias_from_bright_residual():
+    """An unsubtracted extended residual (short baselines only) biases the stack; mc sees it."""
+    flux = 2e-2
+    res_vis_args = dict(fwhm_arcsec=240.0)
+    ra, dec = _targets(n=40, seed=4)
+    pos = (np.degrees(ra), np.degrees(dec))
+    _, uvw, freq = noise_field(0, **FIELD)
+    resid = point_sources_vis(uvw, freq, np.array([CENTRE[0] + 1e-4]), np.array([CENTRE[1]]),
+                              np.array([200.0]), CENTRE, **res_vis_args)
+    clean, _, _ = noise_field(7, **FIELD)
+    dirty, _, _ = noise_field(7, extra_vis=resid, **FIELD)
+    r0 = estimate_noise(clean, pos, method="mc", realizations=100, flux=flux, seed=1)
+    r1 = estimate_noise(dirty, pos, method="mc", realizations=100, flux=flux, seed=1)
+    # same noise and same seed: identical positions, so the difference is the residual alone
+    np.testing.assert_allclose(r1.positions_deg, r0.positions_deg)
+    diff = r1.values - r0.values
+    for r in range(2):
+        pra, pdec = np.radians(r1.positions_deg[r]).T
+        A = BEAM(angular_separation(pra, pdec, *CENTRE)[:, None], freq[None, :])
+        ref_r = stack_flux(resid[..., None] * np.ones(2), np.ones(resid.shape + (2,)), uvw, freq,
+                           pra, pdec, CENTRE, 1 / A)
+        assert diff[r] == pytest.approx(ref_r, rel=1e-8)
+    # truth: mean over independent random position sets of the residual alone, stacked
+    ref = []
+    rng = np.random.default_rng(99)
+    radius = angular_separation(ra, dec, *CENTRE).max() * 1.02
+    sep = np.radians(r1.extra["min_separation_arcsec"] / 3600)
+    for _ in range(20):
+        pra, pdec = random_positions(40, 1, np.array([CENTRE]), np.array([radius]), avoid_ra=ra,
+                                     avoid_dec=dec, min_separation=sep, rng=rng)
+        A = BEAM(angular_separation(pra[0], pdec[0], *CENTRE)[:, None], freq[None, :])
+        ref.append(stack_flux(resid[..., None] * np.ones(2), np.ones(resid.shape + (2,)), uvw, freq,
+                              pra[0], pdec[0], CENTRE, 1 / A))
+    true_bias = float(np.mean(ref))
+    shift = r1.bias_jy - r0.bias_jy
+    tol = 4 * (np.std(diff) / np.sqrt(diff.size) + np.std(ref) / np.sqrt(len(ref)))
+    assert shift == pytest.approx(true_bias, abs=tol)
+    # the bias is large compared with the noise-only bias and with the noise of the stack
+    assert abs(r1.bias_jy) > 3 * abs(r0.bias_jy) and abs(r1.bias_jy) > r0.noise_jy
+    # the uv-profile shows where: the offset sits on the short baselines
+    r2 = estimate_noise(dirty, pos, method="mc", realizations=30, flux=flux, seed=1,
+                        profile_bins=8)
+    off = np.nanmean(r2.profile["values"] - r2.profile["injected"][:, None], axis=0)
+    assert abs(off[0]) > 3 * np.nanmax(np.abs(off[4:]))
+
+
+def test_bad_inputs(tmp_path):
+    ds, _, _ = noise_field(0, n_ant=6, n_time=4)
+    ra, dec = _targets(n=5)
+    pos = (np.degrees(ra), np.degrees(dec))
+    with pytest.raises(XstackError, match="at least 2 realisations"):
+        estimate_noise(ds, pos, method="mc", realizations=1)
+    with pytest.raises(XstackError, match="unknown noise method"):
+        estimate_noise(ds, pos, method="jackknife")
+    with pytest.raises(XstackError, match="too dense"):
+        estimate_noise(ds, pos, method="random", realizations=3, min_separation_arcsec=600)
+    with pytest.raises(XstackError, match="no visibilities left"):
+        estimate_noise(ds, pos, method="random", realizations=3, uvmin="1e9lambda")
+    with pytest.raises(XstackError, match="inside a primary beam"):
+        estimate_noise(ds, ([0.0], [10.0]), method="analytic")
+
+
+def test_result_outputs(tmp_path):
+    ds, _, _ = noise_field(0, n_ant=6, n_time=4)
+    ra, dec = _targets(n=5)
+    res = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="mc", realizations=5,
+                         flux="1mJy")
+    d = res.to_dict()
+    assert {"noise_jy", "bias_jy", "realizations"} <= set(d)
+    assert len(d["values_jy"]) == 5 and d["realizations"] == 5
+    path = res.write_json(tmp_path / "n.json")
+    assert json.loads(path.read_text())["noise_jy"] == pytest.approx(res.noise_jy)
+    t = res.table()
+    assert len(t) == 5 and np.allclose(t["offset_jy"], res.values - res.injected)
+    np.testing.assert_allclose(res.injected, 1e-3, rtol=0.05)

@@ -353,8 +353,18 @@ def _as_dask(ds: xr.Dataset) -> xr.Dataset:
     if len(vchunks[2]) > 1 or len(vchunks[3]) > 1:
         ds = ds.chunk({"frequency": -1, "polarization": -1})
         vchunks = ds["VISIBILITY"].data.chunks
-    ds = ds.chunk({"time": vchunks[0], "baseline_id": vchunks[1], "uvw_label": -1})
-    return ds
+    updates = {}
+    for var in ("WEIGHT", "FLAG", "UVW"):
+        arr = ds[var].data
+        want = vchunks if var != "UVW" else (vchunks[0], vchunks[1], (3,))
+        if not isinstance(arr, da.Array):
+            arr = da.from_array(arr, chunks=want)
+        elif arr.chunks != want:
+            arr = arr.rechunk(want)
+        else:
+            continue
+        updates[var] = (ds[var].dims, arr, ds[var].attrs)
+    return ds.assign(updates) if updates else ds
 
 
 def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec) -> tuple[xr.Dataset, Any]:

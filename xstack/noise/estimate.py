@@ -153,8 +153,10 @@ class _Pointing:
         return np.asarray(self.beam(theta[None, :], self.freq[:, None]), dtype=np.float64)
 
     def inside(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
-        theta = angular_separation(ra, dec, self.centre[0], self.centre[1])
-        return np.asarray(self.beam(theta, self.fmid)) >= max(self.beam.cutoff, 1e-12)
+        """In this pointing: A >= cutoff in every channel (as xstack.uvstack decides)."""
+        if self.beam.model == "none":
+            return np.ones(np.shape(ra), dtype=bool)
+        return np.all(self.attenuation(ra, dec) >= max(self.beam.cutoff, 1e-12), axis=0)
 
     def radius(self, field_radius: float | None) -> float:
         if field_radius is not None:
@@ -187,7 +189,7 @@ def _max_q_lambda(pointings: list[_Pointing]) -> float:
 def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realizations: int = 100,
                    flux: Any = None, min_separation_arcsec: float | None = None,
                    avoid: Any = None, seed: int = 0, domain: str = "uv",
-                   weighting: str = "none", primary_beam: str | PrimaryBeam | None = None,
+                   weighting: str = "pb", primary_beam: str | PrimaryBeam | None = None,
                    pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None,
                    field_radius_arcsec: float | None = None, profile_bins: int = 0,
                    progress: bool = False) -> NoiseResult:
@@ -221,8 +223,9 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     domain
         ``"uv"`` (only uv-stacking is implemented by this estimator).
     weighting
-        Position weights w_k: ``none`` (1), ``pb`` (A_k^2 at the mid frequency, inverse
-        variance for primary-beam corrected fluxes) or ``column`` (catalog ``weight``;
+        Position weights w_k, as in :func:`xstack.uvstack`: ``pb`` (default; A_k^2 at the
+        mean frequency, inverse variance for primary-beam corrected fluxes), ``none`` (1) or
+        ``column`` (catalog ``weight``;
         random/mc positions reuse the targets' weights).
     primary_beam, pb_cutoff
         Beam model (``airy``, ``gaussian``, ``none``; default the telescope's standard) and the
@@ -350,6 +353,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     X_t = np.zeros((len(pointings), n_t))          # per-target data term (1/A coefficients)
     inside_t = np.zeros((len(pointings), n_t), bool)
     var_t = np.zeros((len(pointings), n_t))       # sum_c W_c / A_kc^2 per pointing
+    wk_t = np.zeros((len(pointings), n_t))        # w_k of the targets per pointing
     wtot_p = np.zeros(len(pointings))
     any_data = False
     from xstack._progress import progress_iter
@@ -373,6 +377,9 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         inside_t[ip] = inside[tsl]
         wchan = np.zeros(pt.freq.size)
         wbin = np.zeros(max(nbins, 0))
+        wk_t[ip] = wk[tsl]
+        num_p, num_m_p = np.zeros(G), np.zeros(G)
+        prof_p, prof_m_p = np.zeros_like(prof), np.zeros_like(prof)
         blocks = progress_iter(_blocks(pt, lo, hi), f"noise {pt.name}", enabled=progress)
         for uvw, vis_w, wsum in blocks:
             if not np.any(wsum > 0):
@@ -391,19 +398,24 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                 wbin += np.bincount(bins[bins >= 0], wsum[bins >= 0], nbins)
             d, mdl, pr, prm = kernels.group_sums(uvw, pt.freq, vis_w, wsum, l, m, n1, coef, b,
                                                  starts, bins=bins, nbins=nbins)
-            num += d
-            num_m += mdl
-            prof += pr
-            prof_m += prm
+            num_p += d
+            num_m_p += mdl
+            prof_p += pr
+            prof_m_p += prm
+        # pointings combine as in xstack.uvstack: each weighted by its sum of w_k
         wtot = float(wchan.sum())
         wtot_p[ip] = wtot
-        has = gsum > 0
-        den += np.where(has, wtot, 0.0)
+        num += gsum * num_p
+        num_m += gsum * num_m_p
+        den += gsum * wtot
         var_t[ip] = (wchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
         if b is not None:
-            expect += np.add.reduceat((wchan[:, None] * coef * b).sum(axis=0), starts[:-1]) * (sizes > 0)
+            expect += gsum * np.add.reduceat((wchan[:, None] * coef * b).sum(axis=0),
+                                             starts[:-1]) * (sizes > 0)
         if nbins:
-            prof_w += np.where(has[:, None], wbin[None, :], 0.0)
+            prof += gsum[:, None] * prof_p
+            prof_m += gsum[:, None] * prof_m_p
+            prof_w += gsum[:, None] * wbin[None, :]
     if not any_data:
         raise XstackError(f"no visibilities left after the uv cuts (uvmin={uvmin}, uvmax={uvmax}) "
                           "or all data flagged")
@@ -415,21 +427,23 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         extra["min_separation_arcsec"] = float(min_sep / ARCSEC)
     # ---- results -------------------------------------------------------------------------
     if method in ("analytic", "bootstrap"):
-        target_flux = _combine_targets(X_t, inside_t, wtot_p, w_t, np.ones(n_t))
+        target_flux = _combine_targets(X_t, inside_t, wtot_p, wk_t, np.ones(n_t))
         if method == "analytic":
-            wsum_in = (inside_t * wtot_p[:, None]).sum(axis=0)
+            # one position alone: F_k = sum_p w_pk X_pk / sum_p w_pk W_p
+            wsum_in = (wk_t * inside_t * wtot_p[:, None]).sum(axis=0)
             ok = wsum_in > 0
             sig2 = np.full(n_t, np.inf)
-            sig2[ok] = var_t.sum(axis=0)[ok] / wsum_in[ok] ** 2
+            sig2[ok] = (wk_t**2 * var_t).sum(axis=0)[ok] / wsum_in[ok] ** 2
             noise = float(1.0 / np.sqrt(np.sum(1.0 / sig2[ok])))
-            wn = w_t[ok] / w_t[ok].sum()
+            wk_mean = (wk_t * inside_t).sum(axis=0)
+            wn = wk_mean[ok] / wk_mean[ok].sum()
             extra["estimator_noise_jy"] = float(np.sqrt(np.sum(wn**2 * sig2[ok])))
             extra["sigma_k_median_jy"] = float(np.median(np.sqrt(sig2[ok])))
             return NoiseResult("analytic", noise, None, 0, np.zeros(0), None,
                                target_flux, int(ok.sum()), extra=extra)
         counts = np.stack([np.bincount(rng.integers(0, n_t, n_t), minlength=n_t)
                            for _ in range(realizations)])
-        vals = np.array([_combine_targets(X_t, inside_t, wtot_p, w_t, c) for c in counts])
+        vals = np.array([_combine_targets(X_t, inside_t, wtot_p, wk_t, c) for c in counts])
         return NoiseResult("bootstrap", float(np.std(vals, ddof=1)),
                            float(np.mean(vals) - target_flux), realizations, vals, None,
                            target_flux, n_t, extra=extra)
@@ -470,15 +484,19 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
 
 def _combine_targets(X: np.ndarray, inside: np.ndarray, wtot: np.ndarray, w: np.ndarray,
                      counts: np.ndarray) -> float:
-    """Stacked flux of a multiset of targets (``counts`` per target) from per-target sums."""
-    cw = counts * w
+    """Stacked flux of a multiset of targets (``counts`` per target) from per-target sums.
+
+    ``X[p, k]`` = sum_vis Re(VW p_k) / A_pk, ``w[p, k]`` the position weights per pointing:
+    F = sum_p sum_k c_k w_pk X_pk / sum_p s_p W_p with s_p = sum_k c_k w_pk (inside).
+    """
     num = 0.0
     den = 0.0
     for ip in range(X.shape[0]):
-        s = float(np.sum(cw * inside[ip]))
+        cw = counts * w[ip] * inside[ip]
+        s = float(np.sum(cw))
         if s > 0:
-            num += float(np.sum(cw * X[ip])) / s
-            den += wtot[ip]
+            num += float(np.sum(cw * X[ip]))
+            den += s * wtot[ip]
     return num / den if den > 0 else float("nan")
 
 

@@ -71,6 +71,14 @@ def test_streamed_store_equals_in_memory(tmp_path, point_partition):
     b = make_image(path, size=64, cell_arcsec=2.0, weighting="briggs", robust=0.5)
     assert np.allclose(a.image, b.image, atol=1e-7)
     assert np.allclose(a.psf, b.psf, atol=1e-7)
+    # one ducc0 call per store chunk (no batching) gives the same image
+    from xstack.imaging.image import Imager
+
+    imager = Imager(path, size=64, cell_arcsec=2.0, weighting="briggs", robust=0.5)
+    imager.batch_visibilities = 1
+    c = imager.dirty_and_psf()
+    assert np.allclose(c["dirty"], b.image, atol=1e-7)
+    assert c["sum_weights"] == pytest.approx(b.sum_weights, rel=1e-12)
 
 
 def test_weightings_change_beam_not_flux(point_partition):

@@ -342,14 +342,31 @@ class Imager:
         self.phase_center = tuple(float(x) for x in self.parts[0][1].attrs["phase_center"])
         self.density: np.ndarray | None = None
         self.f2 = 0.0
+        #: visibilities (rows x channels) gathered per ducc0 call
+        self.batch_visibilities = 1 << 24
         if weighting != "natural":
             self._density_pass()
 
     # -- iteration
     def _iter(self, need_vis: bool, description: str) -> Iterator[tuple[np.ndarray, ...]]:
+        """Yield (uvw, freq, imaging weight, vis) batches of about ``batch_visibilities``.
+
+        Small store chunks are concatenated before gridding: every ducc0 call pays for the
+        FFTs of the whole (oversampled) grid, so fewer, larger calls are much faster.
+        """
         from xstack._progress import progress_iter
 
         jobs = [(name, ds, ts, bs) for name, ds in self.parts for ts, bs in _blocks(ds)]
+        buf: list[tuple[np.ndarray, ...]] = []
+        nbuf = 0
+        cur: np.ndarray | None = None
+
+        def flush() -> tuple[np.ndarray, ...]:
+            uvw = np.concatenate([b[0] for b in buf])
+            w = np.concatenate([b[1] for b in buf])
+            v = np.concatenate([b[2] for b in buf]) if need_vis else None
+            return uvw, cur, w, v
+
         for name, ds, ts, bs in progress_iter(jobs, description, self.progress, total=len(jobs)):
             names = ["UVW", "WEIGHT", "FLAG"] + (["VISIBILITY"] if need_vis else [])
             arrays = _read(ds, ts, bs, names)
@@ -361,7 +378,17 @@ class Imager:
             if self.density is not None:
                 dens = kernels.lookup_weight_grid(self.density, uvw, freq, self.cell)
                 w = kernels.imaging_weights(w, dens, self.weighting, self.f2)
-            yield uvw, freq, w, v
+            if buf and (cur.shape != freq.shape or not np.array_equal(cur, freq)):
+                yield flush()
+                buf, nbuf = [], 0
+            cur = freq
+            buf.append((uvw, w, v))
+            nbuf += w.size
+            if nbuf >= self.batch_visibilities:
+                yield flush()
+                buf, nbuf = [], 0
+        if buf:
+            yield flush()
 
     def _density_pass(self) -> None:
         grid = np.zeros((self.ny, self.nx))

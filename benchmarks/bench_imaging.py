@@ -1,0 +1,180 @@
+"""Imaging benchmarks: gridder accuracy vs time, a 4000 x 4000 image, CLEAN time vs components.
+
+Run ``python benchmarks/bench_imaging.py [--time-step S] [--skip-big]``; prints Markdown tables.
+
+1. Accuracy of ducc0 (``vis2dirty`` via :func:`xstack.imaging.image.grid_visibilities`) against
+   an independent direct Fourier sum (small case), and time vs epsilon on a larger case.
+2. Paper type 3 geometry: VLA A, 1.4 GHz, 10 channels, 9.4 h, 4000 x 4000 pixels of 0.45"
+   (30' field), dirty image + PSF with w-term, streamed from an in-memory partition in
+   ~128 MB chunks.
+3. CLEAN (image plane, Högbom vs Clark) time vs number of components.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import resource
+import time
+
+import numpy as np
+
+from xstack.imaging import kernels
+from xstack.imaging.clean import clean
+from xstack.imaging.image import grid_visibilities, make_image
+
+ARCSEC = math.pi / 180 / 3600
+FIELD = (math.radians(57.29579), math.radians(-30.0))  # 3h49m10.99s, -30 deg
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def vla_uvw(n_time: int, hours: float = 9.4) -> tuple[np.ndarray, np.ndarray, np.ndarray, object]:
+    from xstack.schema import baseline_pairs
+    from xstack.sim.arrays import baseline_uvw, packaged_array, time_of_hour_angle
+
+    arr = packaged_array("vla.a")
+    a1, a2 = baseline_pairs(arr.n_antennas)
+    t0 = time_of_hour_angle(-hours / 2 * 15 * math.pi / 180, FIELD[0],
+                            math.atan2(arr.site[1], arr.site[0]), 60000.0)
+    times = t0 + np.linspace(0, hours * 3600, n_time)
+    return baseline_uvw(arr.positions, a1, a2, times, *FIELD), a1, a2, (arr, times)
+
+
+def bench_accuracy(rows: list[str]) -> None:
+    rng = np.random.default_rng(1)
+    uvw = vla_uvw(24)[0].reshape(-1, 3)[::3]
+    freq = np.linspace(1.3e9, 1.5e9, 4)
+    vis = rng.normal(size=(uvw.shape[0], 4)) + 1j * rng.normal(size=(uvw.shape[0], 4))
+    wgt = np.ones(vis.shape)
+    n, cell = 128, 2.0 * ARCSEC  # 4.3' field, w-term on
+    t = time.perf_counter()
+    ref = kernels.direct_dirty_image(uvw, freq, vis, wgt, n, n, cell)
+    t_dft = time.perf_counter() - t
+    rows.append(f"Direct Fourier sum reference: {uvw.shape[0]} rows x 4 channels, {n}x{n} pixels, "
+                f"{t_dft:.1f} s.\n")
+    rows.append("| epsilon | max error / max abs (vs DFT) | ducc0 time small (s) |")
+    rows.append("|---|---|---|")
+    for eps in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-8, 1e-10):
+        t = time.perf_counter()
+        img = grid_visibilities(uvw, freq, vis, wgt, n, n, cell, epsilon=eps)
+        dt = time.perf_counter() - t
+        err = np.max(np.abs(img - ref)) / np.max(np.abs(ref))
+        rows.append(f"| {eps:g} | {err:.2e} | {dt:.3f} |")
+
+
+def bench_epsilon_time(rows: list[str], n_time: int) -> None:
+    rng = np.random.default_rng(2)
+    uvw = vla_uvw(n_time)[0].reshape(-1, 3)
+    freq = 1.4e9 + 25e6 * np.arange(10) - 112.5e6
+    vis = (rng.normal(size=(uvw.shape[0], 10)) + 1j * rng.normal(size=(uvw.shape[0], 10)))
+    wgt = np.ones(vis.shape)
+    n, cell = 2048, 0.45 * ARCSEC
+    ref = grid_visibilities(uvw, freq, vis, wgt, n, n, cell, epsilon=1e-10)
+    rows.append(f"\n{uvw.shape[0] * 10 / 1e6:.1f} M visibilities (VLA A, 10 channels), {n}x{n} "
+                "pixels of 0.45\", w-term; error vs epsilon=1e-10:\n")
+    rows.append("| epsilon | precision | time (s) | Mvis/s | max error / max abs |")
+    rows.append("|---|---|---|---|---|")
+    for eps in (1e-2, 1e-4, 1e-5, 1e-6, 1e-8):
+        t = time.perf_counter()
+        img = grid_visibilities(uvw, freq, vis, wgt, n, n, cell, epsilon=eps)
+        dt = time.perf_counter() - t
+        err = np.max(np.abs(img - ref)) / np.max(np.abs(ref))
+        prec = "single" if eps >= 1e-4 else "double"
+        rows.append(f"| {eps:g} | {prec} | {dt:.2f} | {uvw.shape[0] * 10 / dt / 1e6:.1f} | {err:.1e} |")
+
+
+def big_partition(time_step: float):
+    from xstack.schema import new_partition
+
+    n_time = int(round(9.4 * 3600 / time_step))
+    uvw, a1, a2, (arr, times) = vla_uvw(n_time)
+    freq = 1.4e9 - 112.5e6 + 25e6 * np.arange(10)
+    shape = (n_time, a1.size, 10, 2)
+    rng = np.random.default_rng(3)
+    vis = np.empty(shape, dtype=np.complex64)
+    vis.real = rng.standard_normal(shape, dtype=np.float32)
+    vis.imag = rng.standard_normal(shape, dtype=np.float32)
+    vis += 1.0  # a 1 Jy source at the phase centre
+    ds = new_partition(visibility=vis, weight=np.ones(shape, np.float32),
+                       flag=np.zeros(shape, bool), uvw=uvw, time=times, antenna1=a1,
+                       antenna2=a2, antenna_names=arr.names, antenna_positions=arr.positions,
+                       dish_diameters=arr.diameters, frequency=freq,
+                       channel_width=np.full(10, 25e6), polarization=["RR", "LL"],
+                       phase_center=FIELD, telescope_name="VLA", integration_time=time_step)
+    return ds
+
+
+def bench_big(rows: list[str], time_step: float, size: int, epsilon: float) -> np.ndarray:
+    t = time.perf_counter()
+    ds = big_partition(time_step)
+    t_build = time.perf_counter() - t
+    nvis = ds.VISIBILITY.size
+    t = time.perf_counter()
+    res = make_image(ds, size=size, cell_arcsec=0.45, epsilon=epsilon)
+    dt = time.perf_counter() - t
+    rows.append(f"| {size}x{size} | {time_step:g} s | {nvis / 1e6:.1f} | {epsilon:g} | {dt:.1f} | "
+                f"{res.image[size // 2, size // 2]:.4f} | {res.beam[0]:.2f}x{res.beam[1]:.2f} | "
+                f"{peak_rss_mb():.0f} |")
+    print(f"(built data in {t_build:.1f} s)")
+    return res
+
+
+def bench_clean(rows: list[str], size: int, psf: np.ndarray | None) -> None:
+    rng = np.random.default_rng(4)
+    if psf is None:
+        psf = kernels.gaussian_image(size, size, 3.0, 2.5, 0.0)
+    if psf.shape != (size, size):
+        c = psf.shape[0] // 2
+        psf = psf[c - size // 2:c + size // 2, c - size // 2:c + size // 2]
+    from scipy.signal import fftconvolve
+
+    truth = np.zeros((size, size))
+    for _ in range(10):
+        y, x = rng.integers(size // 4, 3 * size // 4, 2)
+        truth[y, x] = rng.uniform(5e-3, 1e-2)  # paper type 3: 10 x 5-10 mJy
+    dirty = fftconvolve(truth, psf, mode="same") + 1e-5 * rng.normal(size=truth.shape)
+    for algorithm in ("hogbom", "clark"):
+        for niter in (100, 1000):
+            t = time.perf_counter()
+            r = clean(dirty, psf, threshold=0.0, niter=niter, algorithm=algorithm)
+            dt = time.perf_counter() - t
+            rows.append(f"| {size}x{size} | {algorithm} | {r.n_components} | {dt:.2f} | "
+                        f"{1e3 * dt / max(r.n_components, 1):.2f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--time-step", type=float, default=10.0,
+                        help="integration time of the type-3 data set (paper: 10 s)")
+    parser.add_argument("--size", type=int, default=4000)
+    parser.add_argument("--skip-big", action="store_true")
+    args = parser.parse_args()
+    rows: list[str] = ["## Gridder accuracy vs epsilon\n"]
+    bench_accuracy(rows)
+    bench_epsilon_time(rows, 180)
+    print("\n".join(rows))
+    rows = ["\n## Paper type 3 size: dirty image + PSF\n",
+            "| image | integration | Mvis (both hands) | epsilon | time (s) | centre (Jy/beam, true 1) "
+            "| beam (\") | peak RSS (MB) |",
+            "|---|---|---|---|---|---|---|---|"]
+    psf = None
+    if not args.skip_big:
+        for eps in (1e-4, 1e-6):
+            res = bench_big(rows, args.time_step, args.size, eps)
+            psf = res.psf
+            del res
+    print("\n".join(rows))
+    rows = ["\n## CLEAN (image plane) time vs components\n",
+            "| image | algorithm | components | time (s) | ms / component |", "|---|---|---|---|---|"]
+    bench_clean(rows, 1024, None if psf is None else psf)
+    if psf is not None:
+        bench_clean(rows, args.size, psf)
+    print("\n".join(rows))
+    print(f"\npeak RSS of the whole run: {peak_rss_mb():.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

@@ -165,6 +165,133 @@ def _kernel_f32(u, v, freq, l, m, amp, out):
                 out[r, c] += amp[k, c] * complex(math.cos(ph), math.sin(ph))
 
 
+@numba.njit(nogil=True, cache=True)
+def _antenna_phasors(ut, vt, wt, has_w, freq, uniform, lk, mk, nk, E):
+    """E[a, c] = exp(+2 pi i (u_a l + v_a m + w_a (n-1)) nu_c / c) for one source and time."""
+    twopi_c = 2.0 * math.pi / 299792458.0
+    nchan = freq.size
+    f0 = freq[0]
+    df = freq[1] - freq[0] if nchan > 1 else 0.0
+    for a in range(ut.size):
+        dot = ut[a] * lk + vt[a] * mk
+        if has_w:
+            dot += wt[a] * nk
+        pph = twopi_c * dot
+        if uniform:
+            ph = pph * f0
+            p = complex(math.cos(ph), math.sin(ph))
+            sph = pph * df
+            step = complex(math.cos(sph), math.sin(sph))
+            for c in range(nchan):
+                if c > 0 and c % RESYNC == 0:
+                    ph = pph * freq[c]
+                    p = complex(math.cos(ph), math.sin(ph))
+                E[a, c] = p
+                p = p * step
+        else:
+            for c in range(nchan):
+                ph = pph * freq[c]
+                E[a, c] = complex(math.cos(ph), math.sin(ph))
+
+
+@numba.njit(nogil=True, cache=True)
+def _antenna_time(t, u, v, w, has_w, freq, uniform, l, m, nm1, amp, a1, a2, out):
+    nant = u.shape[1]
+    nchan = freq.size
+    E = np.empty((nant, nchan), dtype=np.complex128)
+    G = np.empty((nant, nchan), dtype=np.complex128)
+    for k in range(l.size):
+        _antenna_phasors(u[t], v[t], w[t], has_w, freq, uniform, l[k], m[k],
+                         nm1[k] if has_w else 0.0, E)
+        for a in range(nant):
+            for c in range(nchan):
+                G[a, c] = amp[k, c] * E[a, c]
+        for b in range(a1.size):
+            i = a1[b]
+            j = a2[b]
+            for c in range(nchan):
+                out[t, b, c] += G[i, c] * E[j, c].conjugate()
+
+
+@numba.njit(nogil=True, cache=True)
+def _antenna_serial(u, v, w, has_w, freq, uniform, l, m, nm1, amp, a1, a2, out):
+    for t in range(u.shape[0]):
+        _antenna_time(t, u, v, w, has_w, freq, uniform, l, m, nm1, amp, a1, a2, out)
+
+
+@numba.njit(nogil=True, parallel=True, cache=True)
+def _antenna_parallel(u, v, w, has_w, freq, uniform, l, m, nm1, amp, a1, a2, out):
+    for t in numba.prange(u.shape[0]):
+        _antenna_time(t, u, v, w, has_w, freq, uniform, l, m, nm1, amp, a1, a2, out)
+
+
+def model_visibilities_antenna(antenna_uvw: Any, antenna1: Any, antenna2: Any, frequency: Any,
+                               l: Any, m: Any, n_minus_1: Any, flux: Any,
+                               attenuation: Any = None, out_dtype: Any = np.complex128, *,
+                               parallel: bool = True) -> np.ndarray:
+    """Point-source visibilities from per-antenna phasors (same result as
+    :func:`model_visibilities`, many times faster for many baselines).
+
+    A baseline's phase is the difference of its antennas' phases, so with per-antenna
+    coordinates ``antenna_uvw`` (ntime, nant, 3) such that the MS UVW of baseline b is
+    ``antenna_uvw[:, antenna1[b]] - antenna_uvw[:, antenna2[b]]``,
+    ``V_b = sum_k A_k S_k E_{a1,k} conj(E_{a2,k})`` with
+    ``E_{a,k} = exp(+2 pi i (u_a l_k + v_a m_k + w_a (n_k - 1)) / lambda)``: one phasor per
+    antenna instead of one per baseline. Point sources only (a Gaussian factor depends on
+    the baseline, not on the antennas).
+
+    Returns
+    -------
+    numpy.ndarray
+        (ntime, nbaseline, nchan) complex visibilities, Jy.
+    """
+    ant = np.asarray(antenna_uvw, dtype=np.float64)
+    if ant.ndim != 3 or ant.shape[2] != 3:
+        raise ValueError(f"antenna_uvw must have shape (ntime, nant, 3), got {ant.shape}")
+    a1 = np.ascontiguousarray(antenna1, dtype=np.int64)
+    a2 = np.ascontiguousarray(antenna2, dtype=np.int64)
+    freq = np.atleast_1d(np.asarray(frequency, dtype=np.float64))
+    l = np.atleast_1d(np.asarray(l, dtype=np.float64))
+    m = np.atleast_1d(np.asarray(m, dtype=np.float64))
+    flux = np.atleast_1d(np.asarray(flux, dtype=np.float64))
+    nsrc, nchan, nt = l.size, freq.size, ant.shape[0]
+    nm1 = None if n_minus_1 is None else np.atleast_1d(np.asarray(n_minus_1, np.float64))
+    amp = np.broadcast_to(flux[:, None], (nsrc, nchan))
+    if attenuation is not None:
+        att = np.asarray(attenuation, dtype=np.float64)
+        if att.shape != (nsrc, nchan):
+            raise ValueError(f"attenuation must have shape (nsrc, nchan) = {(nsrc, nchan)}")
+        amp = amp * att
+        _count("attenuation")
+    amp = np.ascontiguousarray(amp, dtype=np.float64)
+    out = np.zeros((nt, a1.size, nchan), dtype=np.complex128)
+    if nsrc == 0 or nt == 0 or a1.size == 0:
+        return out.astype(out_dtype, copy=False)
+    at_centre = (l == 0.0) & (m == 0.0)
+    if nm1 is not None:
+        at_centre &= nm1 == 0.0
+    if at_centre.any():
+        out += amp[at_centre].sum(axis=0)[None, None, :]
+        _count("constant")
+    rest = ~at_centre
+    if rest.any():
+        has_w = nm1 is not None and bool(np.any(nm1[rest] != 0.0))
+        order = np.argsort(freq, kind="stable")
+        fs = np.ascontiguousarray(freq[order])
+        tmp = np.zeros((nt, a1.size, nchan), dtype=np.complex128)
+        kern = _antenna_parallel if parallel else _antenna_serial
+        kern(np.ascontiguousarray(ant[..., 0]), np.ascontiguousarray(ant[..., 1]),
+             np.ascontiguousarray(ant[..., 2]), has_w, fs, is_uniform(fs),
+             np.ascontiguousarray(l[rest]), np.ascontiguousarray(m[rest]),
+             np.ascontiguousarray(nm1[rest]) if has_w else np.zeros(int(rest.sum())),
+             np.ascontiguousarray(amp[rest][:, order]), a1, a2, tmp)
+        inv = np.empty_like(order)
+        inv[order] = np.arange(nchan)
+        out += tmp[:, :, inv]
+        _count("phase", *(("w_term",) if has_w else ()))
+    return out.astype(out_dtype, copy=False)
+
+
 def is_uniform(frequency: np.ndarray) -> bool:
     """True if channels are equally spaced and ascending to rounding (a few ulp)."""
     f = np.asarray(frequency, dtype=np.float64)

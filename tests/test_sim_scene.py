@@ -1,0 +1,136 @@
+"""Scene loading, validation (errors naming the field), presets and flux distributions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from xstack.errors import XstackError
+from xstack.sim.counts import FluxDistribution, s_min_for_count
+from xstack.sim.presets import PRESETS, preset_dict, preset_scene
+from xstack.sim.scene import Scene, load_scene
+
+GOOD = """
+name = "toml-test"
+[array]
+config = "alma.cycle1.2"
+[observation]
+integration = 6.0
+time_per_pointing = 12.0
+hour_angle = [-1.0, 1.0]
+[spectral]
+centre = 230e9
+bandwidth = 2e9
+channels = 4
+polarizations = ["XX", "YY"]
+[pointings]
+mode = "single"
+centre = ["3h49m10.99s", "-30d00m00s"]
+[effects]
+primary_beam = "standard"
+noise = { sigma = 0.5 }
+[[populations]]
+name = "targets"
+count = 5
+flux = { kind = "fixed", value = "1mJy" }
+positions = { kind = "disc", radius_arcsec = 5.0 }
+"""
+
+
+def test_toml_scene_loads_and_round_trips(tmp_path):
+    path = tmp_path / "s.toml"
+    path.write_text(GOOD)
+    scene = load_scene(path)
+    assert scene.populations[0].flux.value == pytest.approx(1e-3)
+    assert scene.effects.noise.sigma == 0.5 and scene.effects.w_term is False
+    again = load_scene(scene.to_dict())
+    assert again == scene
+
+
+@pytest.mark.parametrize("edit, field", [
+    (("mode = \"single\"", "mdoe = \"single\""), "pointings.mdoe"),
+    (("config = \"alma.cycle1.2\"", "config = \"alma.cycle9\""), "array.config"),
+    (("bandwidth = 2e9", "bandwidth = 0.0"), "spectral.bandwidth"),
+    (("value = \"1mJy\"", "value = \"-1mJy\""), "populations[0].flux.value"),
+    (("count = 5", "count = \"five\""), "populations[0].count"),
+    (("radius_arcsec = 5.0", "radius_arcsec = 500.0"), "populations[0].positions"),
+    (("channels = 4", "channels = 0"), "spectral.channels"),
+    (("noise = { sigma = 0.5 }", "noise = { sigma = 0.5, sefd = 3 }"), "effects.noise"),
+    (("[effects]", "[efects]"), "efects"),
+])
+def test_bad_scenes_name_the_field_and_write_nothing(tmp_path, edit, field):
+    from xstack.sim.simulate import simulate
+
+    path = tmp_path / "bad.toml"
+    path.write_text(GOOD.replace(*edit))
+    out = tmp_path / "out.zarr"
+    with pytest.raises(XstackError) as err:
+        simulate(path, out)
+    assert field in str(err.value)
+    assert list(tmp_path.iterdir()) == [path]  # nothing written
+
+
+def test_invalid_toml_syntax(tmp_path):
+    path = tmp_path / "x.toml"
+    path.write_text("[array\nconfig = 1")
+    with pytest.raises(XstackError, match="not valid TOML"):
+        load_scene(path)
+
+
+def test_scaling_rule():
+    scene = preset_scene("paper-5")
+    small = scene.scaled(0.05)
+    assert small.observation.time_per_pointing == pytest.approx(33840 * 0.05)
+    counts = {p.name: p.count for p in small.populations}
+    assert counts == {"bright": round(417 * 0.05), "targets": round(900 * 0.05)}
+    assert {p.name: p.count for p in preset_scene("paper-1").scaled(0.05).populations} == \
+        {"bright": 1, "targets": 10}
+    with pytest.raises(XstackError, match="scale"):
+        scene.scaled(0.0)
+    assert isinstance(scene, Scene) and scene.populations[0].count == 417  # not modified
+
+
+def test_unknown_preset():
+    with pytest.raises(XstackError, match="unknown preset"):
+        preset_dict("paper-12")
+    assert len(PRESETS) == 11
+
+
+def test_schechter_mean_matches_paper():
+    """Paper §2.2.4: the target fluxes average 0.99 uJy."""
+    d = FluxDistribution("schechter", alpha=-1.6, s_star=1.7e-6, s_min=0.425e-6, s_max=17e-6)
+    assert d.mean() == pytest.approx(0.99e-6, rel=0.02)
+    x = d.sample(200000, np.random.default_rng(3))
+    assert x.min() >= 0.425e-6 and x.max() <= 17e-6
+    assert x.mean() == pytest.approx(d.mean(), rel=0.01)
+
+
+def test_sampling_follows_the_counts():
+    """KS test of drawn fluxes against the analytic CDF of a power law."""
+    d = FluxDistribution("power_law", index=-2.5, s_min=1e-3, s_max=1.0)
+    x = d.sample(20000, np.random.default_rng(5))
+    a = -1.5
+
+    def cdf(s):
+        return (s**a - 1e-3**a) / (1.0**a - 1e-3**a)
+
+    assert stats.kstest(x, cdf).pvalue > 1e-3
+
+
+def test_bondi_counts_and_limit():
+    d = FluxDistribution("bondi2008", s_min=1e-7, s_max=1.0)
+    area = (1800 / 206264.806) ** 2
+    s_min = s_min_for_count(d, 417, area)
+    d.s_min = s_min
+    assert d.expected_number(area) == pytest.approx(417, rel=1e-6)
+    # independent check: Euclidean-normalised counts at 1 mJy = 10^a0 Jy^1.5/sr
+    assert d.dnds_function(np.array([1e-3]))[0] * (1e-3) ** 2.5 == pytest.approx(10**0.805)
+    assert 3e-5 < s_min < 2e-4
+
+
+def test_bethermin_tabulation_is_consistent():
+    d = FluxDistribution("bethermin2012_1.1mm", s_min=1e-4, s_max=1e-2)
+    # integrating the tabulated dN/dS reproduces the tabulated N(>S) differences
+    n = d.expected_number(1.0 / (180 / np.pi) ** 2)  # per deg^2, 0.1 to 10 mJy
+    assert n == pytest.approx(8.0e4 - 3.0e1, rel=0.02)

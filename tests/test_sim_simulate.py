@@ -1,0 +1,228 @@
+"""The simulator end to end: eq. 1 against independent numpy, primary beam, noise statistics,
+opt-in steps (counted, not timed), determinism across chunkings, files written."""
+
+from __future__ import annotations
+
+import math
+
+import dask
+import numpy as np
+import pytest
+from _sim_helpers import direct_eq1
+from astropy.table import Table
+from scipy import stats
+
+from xstack.beams import standard_beam
+from xstack.coords import radec_to_lmn
+from xstack.errors import XstackError
+from xstack.schema import open_store
+from xstack.sim import kernels
+from xstack.sim.scene import PAPER_FIELD_CENTRE
+from xstack.sim.simulate import simulate, simulate_partitions
+
+RA0, DEC0 = PAPER_FIELD_CENTRE
+
+
+def _scene(populations, **kw):
+    base = {
+        "name": "t",
+        "array": {"config": "alma.cycle1.2"},
+        "observation": {"hour_angle": [-1.0, 1.0], "integration": 6.0, "time_per_pointing": 30.0},
+        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 8,
+                     "polarizations": ["XX", "XY", "YX", "YY"]},
+        "pointings": {"mode": "single", "centre": [RA0, DEC0]},
+        "effects": {},
+        "visibility_dtype": "complex128",
+        "populations": populations,
+    }
+    for k, v in kw.items():
+        if isinstance(v, dict) and k in base:
+            base[k] = {**base[k], **v}
+        else:
+            base[k] = v
+    return base
+
+
+def _pop(name, ra, dec, flux, fwhm=None):
+    shape = {"kind": "gaussian", "fwhm_arcsec": [fwhm]} if fwhm else {"kind": "point"}
+    return {"name": name, "count": len(ra), "flux": {"kind": "fixed", "value": flux},
+            "positions": {"kind": "list", "ra": list(ra), "dec": list(dec)}, "shape": shape}
+
+
+def _first(parts):
+    return next(iter(parts.values()))
+
+
+def test_point_source_at_phase_centre_is_constant_and_cheap():
+    scene = _scene([_pop("c", [RA0], [DEC0], 2e-3)])
+    with kernels.record_steps() as steps:
+        parts, cats = simulate_partitions(scene, seed=1)
+        ds = _first(parts).compute()
+    vis = ds.VISIBILITY.values
+    assert np.all(vis[..., [0, 3]] == 2e-3) and np.all(vis[..., [1, 2]] == 0)
+    assert not ds.FLAG.values.any() and np.all(ds.WEIGHT.values == 1)
+    # no phasors, no w-term, no Gaussian, no beam, no random numbers
+    assert set(steps) == {"constant"}
+
+
+def test_offset_sources_match_independent_eq1():
+    rng = np.random.default_rng(7)
+    ra = RA0 + rng.uniform(-8, 8, 6) / 3600 / math.cos(math.radians(DEC0))
+    dec = DEC0 + rng.uniform(-8, 8, 6) / 3600
+    scene = _scene([_pop("a", ra[:3], dec[:3], 1e-3), _pop("b", ra[3:], dec[3:], 3e-3, 1.5)],
+                   effects={"w_term": True, "primary_beam": "standard"})
+    with kernels.record_steps() as steps:
+        parts, cats = simulate_partitions(scene)
+        ds = _first(parts).compute()
+    assert {"phase", "w_term", "gaussian", "attenuation"} <= set(steps)
+    freq = ds.frequency.values
+    uvw = ds.UVW.values.reshape(-1, 3)
+    beam = standard_beam("ALMA", 12.0)
+    ref = 0
+    for table in cats.values():
+        r, d = np.radians(table["ra"]), np.radians(table["dec"])
+        l, m, _, nm1 = radec_to_lmn(r, d, math.radians(RA0), math.radians(DEC0))
+        sep = np.hypot(l, m)  # small field: fine as the independent PB argument
+        sep = np.arcsin(sep)
+        att = beam(sep[:, None], freq[None, :])
+        fwhm = np.radians(np.asarray(table["fwhm_arcsec"]) / 3600) if "fwhm_arcsec" in table.colnames \
+            else None
+        ref = ref + direct_eq1(uvw, freq, l, m, nm1, table["flux"], att, fwhm)
+    got = ds.VISIBILITY.values[..., 0].reshape(ref.shape)
+    total = 3 * 1e-3 + 3 * 3e-3
+    assert np.abs(got - ref).max() / total < 1e-9
+    assert np.array_equal(ds.VISIBILITY.values[..., 0], ds.VISIBILITY.values[..., 3])
+
+
+def test_primary_beam_attenuation_at_offsets_and_channels():
+    """Pointings at 0, 8, 15 and 22 arcsec from one source: |V| = S A(theta, nu)."""
+    offs = np.array([0.0, 8.0, 15.0, 22.0])
+    decs = DEC0 + offs / 3600
+    scene = _scene([_pop("s", [RA0], [DEC0], 1.0)],
+                   pointings={"mode": "list", "positions": [[RA0, d] for d in decs]},
+                   effects={"primary_beam": "standard"})
+    parts, _ = simulate_partitions(scene)
+    beam = standard_beam("ALMA", 12.0)
+    assert len(parts) == 4
+    for p, ds in enumerate(parts.values()):
+        amp = np.abs(ds.VISIBILITY.values[..., 0])  # (time, bl, chan)
+        expect = beam(np.radians(offs[p] / 3600), ds.frequency.values)
+        assert np.allclose(amp, expect[None, None, :], rtol=1e-9, atol=0)
+        if p:
+            assert expect[-1] < expect[0] < 1  # narrower beam at the higher channels
+
+
+def test_noise_has_the_requested_sigma():
+    sigma = 0.37
+    scene = _scene([], effects={"noise": {"sigma": sigma}})
+    with kernels.record_steps() as steps:
+        ds = _first(simulate_partitions(scene, seed=11)[0]).compute()
+    assert steps["noise"] > 0
+    z = ds.VISIBILITY.values.ravel() / sigma
+    x = np.concatenate([z.real, z.imag])
+    chi2 = float(np.sum(x**2))
+    dof = x.size
+    # two-sided chi-square test of the variance, and normality of the draws
+    p = 2 * min(stats.chi2.cdf(chi2, dof), stats.chi2.sf(chi2, dof))
+    assert p > 1e-3, (chi2, dof)
+    assert stats.kstest(x[:20000], "norm").pvalue > 1e-3
+    assert np.allclose(ds.WEIGHT.values, 1 / sigma**2, rtol=1e-6)
+    # a wrong sigma is detected by the same test
+    chi2_wrong = float(np.sum((x * sigma / (1.05 * sigma)) ** 2))
+    assert stats.chi2.cdf(chi2_wrong, dof) < 1e-3
+
+
+def test_noise_from_sefd():
+    scene = _scene([], effects={"noise": {"sefd": 5000.0, "efficiency": 0.9}})
+    ds = _first(simulate_partitions(scene)[0])
+    width = float(ds.channel_width.values[0])
+    expect = 5000.0 / (0.9 * math.sqrt(2 * width * 6.0))
+    assert np.allclose(1 / np.sqrt(ds.WEIGHT.values[0, 0]), expect, rtol=1e-6)
+    assert ds.attrs["noise_sigma_jy"] == pytest.approx(expect)
+
+
+def test_noiseless_scene_draws_no_random_numbers_and_no_w_term():
+    scene = _scene([_pop("a", [RA0 + 0.002], [DEC0], 1e-3)])
+    with kernels.record_steps() as steps:
+        _first(simulate_partitions(scene)[0]).VISIBILITY.compute()
+    assert "noise" not in steps and "flag_random" not in steps and "w_term" not in steps
+    assert "gaussian" not in steps and "attenuation" not in steps and steps["phase"] > 0
+
+
+@pytest.mark.parametrize("chunk", [1, 2, 5])
+def test_same_seed_same_bits_whatever_the_chunking(chunk):
+    pops = [{"name": "r", "count": 20, "flux": {"kind": "power_law", "index": -2.0,
+                                                 "s_min": 1e-4, "s_max": 1e-2},
+             "positions": {"kind": "disc", "radius_arcsec": 15.0}}]
+    eff = {"noise": {"sigma": 0.1}, "flagging": {"random_fraction": 0.1}, "w_term": True,
+           "primary_beam": "standard"}
+    ref = _first(simulate_partitions(_scene(pops, effects=eff), seed=5)[0]).compute(
+        scheduler="synchronous")
+    other = _scene(pops, effects=eff, time_chunk=chunk)
+    ds = _first(simulate_partitions(other, seed=5)[0])
+    assert ds.VISIBILITY.data.npartitions == math.ceil(5 / chunk)
+    with dask.config.set(scheduler="threads", num_workers=2):
+        got = ds.compute()
+    for var in ("VISIBILITY", "FLAG", "WEIGHT", "UVW"):
+        assert np.array_equal(got[var].values, ref[var].values), var
+    diff = _first(simulate_partitions(_scene(pops, effects=eff), seed=6)[0]).VISIBILITY.values
+    assert not np.array_equal(diff, ref.VISIBILITY.values)
+    flagged = ref.FLAG.values.mean()
+    assert 0.08 < flagged < 0.12
+
+
+def test_shadowing_flags_the_antenna_behind():
+    site = np.array([2225142.18, -5440307.37, -2481029.85])
+    from xstack.sim.arrays import enu_to_itrf
+
+    pos = enu_to_itrf(np.array([[0, 0, 0], [0, 9.0, 0], [300, 0, 0]], float), site)
+    scene = _scene([], array={"positions": pos.tolist(), "diameters": [12.0] * 3,
+                              "names": ["A", "B", "C"], "telescope": "ALMA"},
+                   effects={"flagging": {"shadowing": True}})
+    with kernels.record_steps() as steps:
+        ds = _first(simulate_partitions(scene)[0]).compute()
+    assert steps["flag_shadow"] > 0
+    flag = ds.FLAG.values.all(axis=(2, 3))  # (time, baseline): AB, AC, BC
+    # a source at dec -30 seen from ALMA is north of zenith-ish but low enough in the north
+    # that one of A/B (9 m apart north-south, 12 m dishes) always shadows the other
+    assert flag[:, 0].all() and (flag[:, 1].all() or flag[:, 2].all())
+    assert not (flag[:, 1] & flag[:, 2]).any()
+
+
+def test_simulate_writes_store_and_catalogs(tmp_path):
+    pops = [_pop("bright", [RA0 + 0.001], [DEC0], "5mJy"),
+            {"name": "targets", "count": 7, "flux": {"kind": "fixed", "value": "1mJy"},
+             "positions": {"kind": "disc", "radius_arcsec": 10.0},
+             "shape": {"kind": "gaussian", "fwhm_arcsec": [0.5, 2.0]}}]
+    out = tmp_path / "sim.zarr"
+    res = simulate(_scene(pops, effects={"noise": {"sigma": 0.1}}), out, seed=3)
+    assert res.store == out and res.steps_run == {"model", "phase", "extent", "noise"}
+    tree = open_store(out)
+    ds = tree["spw0_field0"].to_dataset()
+    assert ds.sizes["polarization"] == 4 and ds.attrs["field_name"] == "pointing0"
+    assert res.catalog_paths == {"bright": tmp_path / "sim.bright.ecsv",
+                                 "targets": tmp_path / "sim.targets.ecsv"}
+    t = Table.read(res.catalog_paths["targets"])
+    assert t.colnames == ["ra", "dec", "flux", "fwhm_arcsec", "pointing"]
+    assert len(t) == 7 and np.all((t["fwhm_arcsec"] >= 0.5) & (t["fwhm_arcsec"] <= 2.0))
+    assert "fwhm_arcsec" not in Table.read(res.catalog_paths["bright"]).colnames
+    assert tree.attrs["simulation"]["seed"] == 3
+    # existing outputs are refused without overwrite, and nothing changes
+    with pytest.raises(XstackError, match="exists"):
+        simulate(_scene(pops), out, seed=4)
+    again = simulate(_scene(pops, effects={"noise": {"sigma": 0.1}}), out, seed=3, overwrite=True)
+    assert np.array_equal(open_store(again.store)["spw0_field0"].VISIBILITY.values,
+                          ds.VISIBILITY.values)
+
+
+def test_existing_catalog_blocks_before_writing(tmp_path):
+    (tmp_path / "x.p.ecsv").write_text("occupied")
+    with pytest.raises(XstackError, match="exists"):
+        simulate(_scene([_pop("p", [RA0], [DEC0], 1e-3)]), tmp_path / "x.zarr")
+    assert not (tmp_path / "x.zarr").exists()
+
+
+def test_sources_outside_every_pointing_are_refused():
+    scene = _scene([_pop("far", [RA0], [DEC0 + 0.05], 1e-3)])
+    with pytest.raises(XstackError, match=r"populations\[0\].positions.*outside every pointing"):
+        simulate_partitions(scene)

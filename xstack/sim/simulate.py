@@ -1,0 +1,535 @@
+"""Simulate a scene into an xstack store, lazily, as dask tasks over (time, baseline) chunks.
+
+Steps (each runs only when the scene asks for it; :attr:`SimulationResult.steps_run` lists
+the ones in the graph and :func:`xstack.sim.kernels.record_steps` counts those executed):
+
+``model``         equation 1 for the sources of each pointing (kernel :mod:`xstack.sim.kernels`)
+``phase``         off-centre sources (point sources at the phase centre need no phasors)
+``w_term``        ``effects.w_term``
+``extent``        Gaussian sources (a population with ``shape.kind = "gaussian"``)
+``primary_beam``  ``effects.primary_beam`` (per channel and pointing, :mod:`xstack.beams`)
+``noise``         ``effects.noise`` (random numbers are drawn only here and in flagging)
+``flag_random``, ``flag_shadow``  ``effects.flagging``
+
+Reproducibility: the catalog of population i is drawn from ``SeedSequence(seed,
+spawn_key=(1, i))``; the noise of integration t of pointing p from ``SeedSequence(seed,
+spawn_key=(2, p, t))`` and its random flags from ``(3, p, t)``, each for the full set of
+baselines, so the data are the same bit for bit whatever the chunking or the number of
+dask workers.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import dask
+import dask.array as da
+import numpy as np
+import xarray as xr
+from astropy.table import Table
+
+from xstack.beams import PrimaryBeam, standard_beam
+from xstack.coords import SPEED_OF_LIGHT, angular_separation, lm_to_radec, radec_to_lmn
+from xstack.errors import XstackError
+from xstack.schema import baseline_pairs, new_partition, partition_name, write_store
+from xstack.sim import arrays as arr
+from xstack.sim import kernels
+from xstack.sim.scene import Scene, angle_pair, load_scene
+
+ARCSEC = math.pi / (180.0 * 3600.0)
+BOLTZMANN = 1.380649e-23
+#: Target bytes of one VISIBILITY chunk (complex128 work arrays are twice that).
+CHUNK_BYTES = 32 * 1024**2
+
+
+@dataclass
+class SimulationResult:
+    """What :func:`simulate` wrote.
+
+    Attributes
+    ----------
+    store
+        The ``.zarr`` store.
+    catalogs
+        True source list of each population (astropy Tables: ra, dec in deg, flux in Jy,
+        fwhm_arcsec for Gaussian sources, pointing).
+    catalog_paths
+        ECSV file of each population, ``OUT.<population>.ecsv``.
+    steps_run
+        The simulation steps in the graph (see the module docstring).
+    n_visibilities
+        Number of complex visibilities written (all polarizations).
+    """
+
+    store: Path
+    catalogs: dict[str, Table]
+    catalog_paths: dict[str, Path]
+    steps_run: frozenset[str] = frozenset()
+    n_visibilities: int = 0
+    seed: int = 0
+    scale: float = 1.0
+    pointings: list[tuple[float, float]] = field(default_factory=list)
+
+
+@dataclass
+class _Plan:
+    scene: Scene
+    array: arr.AntennaArray
+    freq: np.ndarray
+    width: np.ndarray
+    pols: list[str]
+    pointings: np.ndarray  # (np, 2) rad
+    times: list[np.ndarray]  # per pointing, MJD seconds
+    catalogs: dict[str, Table]
+    ra: np.ndarray  # all sources, rad
+    dec: np.ndarray
+    flux: np.ndarray
+    fwhm: np.ndarray  # rad, 0 for points
+    beam: PrimaryBeam | None  # None: no primary-beam step
+    sigma: np.ndarray | None  # (nbl, nchan) Jy, None: no noise
+    steps: set[str]
+
+
+def _seed_rng(seed: int, *key: int) -> np.random.Generator:
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(int(seed), spawn_key=key)))
+
+
+def _array(scene: Scene) -> arr.AntennaArray:
+    a = scene.array
+    if a.positions:
+        pos = np.asarray(a.positions, dtype=float)
+        names = list(a.names) or [f"A{i:02d}" for i in range(len(pos))]
+        out = arr.AntennaArray(a.telescope, names, pos, np.asarray(a.diameters, float),
+                               "scene", pos.mean(axis=0))
+    elif a.config.lower().removesuffix(".cfg") in arr.PACKAGED:
+        out = arr.packaged_array(a.config)
+    else:
+        out = arr.read_cfg(a.config)
+    if a.antennas:
+        out = out.subset(list(a.antennas))
+    return out
+
+
+def _grid_offsets(mode: str, size: list[float], spacing: float) -> np.ndarray:
+    """(x, y) offsets (arcsec) of a mosaic grid strictly inside the size box, centred."""
+    w, h = size
+    pts = []
+    if mode == "rectangular":
+        nx = int(math.floor(w / spacing + 1e-9)) + 1
+        ny = int(math.floor(h / spacing + 1e-9)) + 1
+        for j in range(ny):
+            for i in range(nx):
+                pts.append(((i - (nx - 1) / 2) * spacing, (j - (ny - 1) / 2) * spacing))
+        return np.array(pts)
+    # hexagonal: rows sqrt(3)/2 spacing apart; the central row is offset by half a spacing
+    dy = spacing * math.sqrt(3.0) / 2.0
+    kmax = int(math.ceil(h / 2 / dy)) + 1
+    for k in range(-kmax, kmax + 1):
+        y = k * dy
+        if not abs(y) < h / 2 - 1e-9:
+            continue
+        off = 0.5 * spacing if k % 2 == 0 else 0.0
+        imax = int(math.ceil(w / 2 / spacing)) + 1
+        for i in range(-imax - 1, imax + 1):
+            x = i * spacing + off
+            if abs(x) < w / 2 - 1e-9:
+                pts.append((x, y))
+    return np.array(sorted(pts, key=lambda p: (p[1], p[0])))
+
+
+def _offsets_to_radec(x_arcsec: np.ndarray, y_arcsec: np.ndarray,
+                      centre: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    return lm_to_radec(np.asarray(x_arcsec) * ARCSEC, np.asarray(y_arcsec) * ARCSEC,
+                       centre[0], centre[1])
+
+
+def _draw_population(i: int, scene: Scene, seed: int, pointings: np.ndarray | None,
+                     centre: tuple[float, float]) -> dict[str, np.ndarray]:
+    q = scene.populations[i]
+    rng = _seed_rng(seed, 1, i)
+    n = q.count
+    pos = q.positions
+    c = tuple(np.radians(angle_pair(pos.centre, f"populations[{i}].positions.centre"))) \
+        if pos.centre else centre
+    if pos.kind == "list":
+        ra, dec = np.radians(np.asarray(pos.ra, float)), np.radians(np.asarray(pos.dec, float))
+    elif pos.kind == "box":
+        w, h = pos.size_arcsec
+        ra, dec = _offsets_to_radec(rng.uniform(-w / 2, w / 2, n), rng.uniform(-h / 2, h / 2, n), c)
+    else:
+        r = pos.radius_arcsec * np.sqrt(rng.uniform(size=n))
+        phi = rng.uniform(0, 2 * np.pi, n)
+        x, y = r * np.sin(phi), r * np.cos(phi)
+        if pos.kind == "disc":
+            ra, dec = _offsets_to_radec(x, y, c)
+        else:
+            assert pointings is not None
+            which = rng.integers(0, len(pointings), n)
+            ra, dec = np.empty(n), np.empty(n)
+            for k in range(n):
+                ra[k], dec[k] = _offsets_to_radec(x[k], y[k], tuple(pointings[which[k]]))
+    flux = q.flux.sample(n, rng)
+    if q.shape.kind == "gaussian":
+        f = q.shape.fwhm_arcsec
+        fwhm = np.full(n, f[0]) if len(f) == 1 or f[0] == f[-1] else rng.uniform(f[0], f[-1], n)
+    else:
+        fwhm = np.zeros(n)
+    return {"ra": np.asarray(ra, float), "dec": np.asarray(dec, float), "flux": flux,
+            "fwhm_arcsec": fwhm}
+
+
+def _times(scene: Scene, n_pointings: int, ra0: float, longitude: float) -> list[np.ndarray]:
+    from astropy.time import Time
+
+    o = scene.observation
+    dt = float(o.integration)
+    n_int = max(1, int(round(o.time_per_pointing / dt)))
+    track = (o.hour_angle[1] - o.hour_angle[0]) * 3600.0 / arr.SIDEREAL_RATE
+    per_track = max(1, int(math.floor(track / dt + 1e-9)))
+    total = n_int * n_pointings
+    offset = 0.5 * (track - total * dt) if total <= per_track else 0.0
+    date = Time(o.date, scale="utc").mjd
+    t0 = arr.time_of_hour_angle(math.radians(o.hour_angle[0] * 15.0), ra0, longitude,
+                                math.floor(date))
+    sidereal_day = arr.SECONDS_PER_DAY / arr.SIDEREAL_RATE
+    j = np.arange(total)
+    day, within = np.divmod(j, per_track)
+    t = t0 + day * sidereal_day + offset + (within + 0.5) * dt
+    return [t[p * n_int:(p + 1) * n_int] for p in range(n_pointings)]
+
+
+def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
+    scene = load_scene(scene).scaled(scale)
+    array = _array(scene)
+    freq, width = scene.spectral.frequencies()
+    steps: set[str] = set()
+    centre = tuple(np.radians(angle_pair(scene.pointings.centre, "pointings.centre")))
+    telescope = array.telescope
+    dish = float(np.mean(array.diameters))
+    check_beam = standard_beam(telescope, dish, cutoff=scene.effects.pb_cutoff)
+
+    # populations and pointings (the population defining the pointings goes first)
+    pm = scene.pointings
+    drawn: dict[int, dict[str, np.ndarray]] = {}
+    names = [q.name for q in scene.populations]
+    if pm.mode == "single":
+        pointings = np.array([centre])
+    elif pm.mode in ("hexagonal", "rectangular"):
+        off = _grid_offsets(pm.mode, pm.size_arcsec, pm.spacing_arcsec)
+        pointings = np.column_stack(_offsets_to_radec(off[:, 0], off[:, 1], centre))
+    elif pm.mode == "list":
+        pointings = np.radians(np.asarray(pm.positions, float))
+    else:
+        k = names.index(pm.population)
+        drawn[k] = _draw_population(k, scene, seed, None, centre)
+        pointings = np.column_stack([drawn[k]["ra"], drawn[k]["dec"]])
+        if len(pointings) == 0:
+            raise XstackError(f"pointings.population: population {pm.population!r} is empty")
+    for i in range(len(scene.populations)):
+        if i not in drawn:
+            drawn[i] = _draw_population(i, scene, seed, pointings, centre)
+
+    # every source must be inside some pointing (standard beam, centre frequency)
+    fc = scene.spectral.centre
+    catalogs: dict[str, Table] = {}
+    for i, q in enumerate(scene.populations):
+        d = drawn[i]
+        sep = angular_separation(d["ra"][:, None], d["dec"][:, None],
+                                 pointings[None, :, 0], pointings[None, :, 1])
+        resp = check_beam(sep, fc) if d["ra"].size else np.zeros((0, len(pointings)))
+        best = resp.argmax(axis=1) if d["ra"].size else np.zeros(0, int)
+        outside = resp.max(axis=1, initial=0.0) < scene.effects.pb_cutoff
+        if outside.any():
+            raise XstackError(
+                f"populations[{i}].positions: {int(outside.sum())} of {q.count} sources of "
+                f"{q.name!r} lie outside every pointing (primary-beam response below "
+                f"{scene.effects.pb_cutoff} at {fc / 1e9:g} GHz)")
+        cols = {"ra": np.degrees(d["ra"]) % 360.0, "dec": np.degrees(d["dec"]),
+                "flux": d["flux"]}
+        if q.shape.kind == "gaussian":
+            cols["fwhm_arcsec"] = d["fwhm_arcsec"]
+        cols["pointing"] = best.astype(np.int64)
+        t = Table(cols)
+        t["ra"].unit, t["dec"].unit, t["flux"].unit = "deg", "deg", "Jy"
+        if "fwhm_arcsec" in t.colnames:
+            t["fwhm_arcsec"].unit = "arcsec"
+        t.meta.update({"population": q.name, "flux_distribution": q.flux.kind})
+        catalogs[q.name] = t
+
+    def cat(key: str) -> np.ndarray:
+        return np.concatenate([drawn[i][key] for i in range(len(scene.populations))] or
+                              [np.zeros(0)])
+
+    ra, dec, flux, fwhm = cat("ra"), cat("dec"), cat("flux"), cat("fwhm_arcsec") * ARCSEC
+
+    e = scene.effects
+    beam = None
+    if e.primary_beam != "none":
+        beam = {"standard": lambda: standard_beam(telescope, dish, cutoff=e.pb_cutoff),
+                "airy": lambda: PrimaryBeam("airy", dish, 0.0, e.pb_cutoff),
+                "gaussian": lambda: PrimaryBeam("gaussian", dish, 0.0, e.pb_cutoff)
+                }[e.primary_beam]()
+    a1, _ = baseline_pairs(array.n_antennas)
+    sigma = None
+    if e.noise is not None:
+        sigma = _noise_sigma(e.noise, array, width, float(scene.observation.integration))
+    lon, _, _ = arr.geodetic(array.site)
+    times = _times(scene, len(pointings), float(pointings[0, 0]), lon)
+
+    if np.any(flux != 0):
+        steps.add("model")
+        if np.any(fwhm > 0):
+            steps.add("extent")
+        if beam is not None:
+            steps.add("primary_beam")
+        if e.w_term:
+            steps.add("w_term")
+        off_centre = np.ones(flux.size, bool)
+        if len(pointings) == 1:
+            off_centre = (ra != pointings[0, 0]) | (dec != pointings[0, 1])
+        if np.any(off_centre & (flux != 0)):
+            steps.add("phase")
+    if sigma is not None:
+        steps.add("noise")
+    if e.flagging is not None:
+        if e.flagging.random_fraction > 0:
+            steps.add("flag_random")
+        if e.flagging.shadowing:
+            steps.add("flag_shadow")
+    return _Plan(scene, array, freq, width, list(scene.spectral.polarizations), pointings,
+                 times, catalogs, ra, dec, flux, fwhm, beam, sigma, steps)
+
+
+def _noise_sigma(n: Any, array: arr.AntennaArray, width: np.ndarray, tau: float) -> np.ndarray:
+    """(nbl, nchan) sigma (Jy) of the real and of the imaginary part of one visibility."""
+    a1, a2 = baseline_pairs(array.n_antennas)
+    if n.sigma is not None:
+        return np.full((a1.size, width.size), float(n.sigma))
+    if n.sefd is not None:
+        sefd = np.full(array.n_antennas, float(n.sefd))
+    else:
+        area = np.pi * (array.diameters / 2.0) ** 2
+        sefd = 2.0 * BOLTZMANN * n.tsys / (n.aperture_efficiency * area) * 1e26
+    s_bl = np.sqrt(sefd[a1] * sefd[a2])
+    return s_bl[:, None] / (n.efficiency * np.sqrt(2.0 * width[None, :] * tau))
+
+
+# ----------------------------------------------------------------------- chunk functions
+
+def _parallel_hands(pols: list[str]) -> np.ndarray:
+    return np.array([p in ("RR", "LL", "XX", "YY") for p in pols])
+
+
+def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
+    (t0, t1), (b0, b1) = block_info[0]["array-location"][:2]
+    a1, a2 = ctx["a1"][b0:b1], ctx["a2"][b0:b1]
+    nt, nb = t1 - t0, b1 - b0
+    nchan, npol = ctx["freq"].size, len(ctx["pols"])
+    out = np.zeros((nt, nb, nchan, npol), dtype=np.complex128)
+    if ctx["flux"].size:
+        ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["centre"])
+        model = np.zeros((nt, nb, nchan), dtype=np.complex128)
+        ext = ctx["extended"]
+        pts = ~ext
+        att, nm1 = ctx["att"], ctx["nm1"]
+        if pts.any():
+            # point sources: per-antenna phasors (one per antenna rather than per baseline)
+            model += kernels.model_visibilities_antenna(
+                ant, a1, a2, ctx["freq"], ctx["l"][pts], ctx["m"][pts],
+                None if nm1 is None else nm1[pts], ctx["flux"][pts],
+                None if att is None else att[pts], parallel=False)
+        if ext.any():
+            uvw = (ant[:, a1, :] - ant[:, a2, :]).reshape(-1, 3)
+            model += kernels.model_visibilities(
+                uvw, ctx["freq"], ctx["l"][ext], ctx["m"][ext],
+                None if nm1 is None else nm1[ext], ctx["flux"][ext],
+                None if att is None else att[ext], ctx["fwhm"][ext],
+                parallel=False).reshape(nt, nb, nchan)
+        out[..., ctx["parallel"]] = model[..., None]
+    sigma = ctx["sigma"]
+    if sigma is not None:
+        kernels._count("noise")
+        nbl_all = ctx["a1"].size
+        for k, ti in enumerate(range(t0, t1)):
+            z = _seed_rng(ctx["seed"], 2, ctx["pointing"], ti).standard_normal(
+                (nbl_all, nchan, npol, 2))[b0:b1]
+            out[k] += sigma[b0:b1, :, None] * (z[..., 0] + 1j * z[..., 1])
+    return out.astype(ctx["dtype"], copy=False)
+
+
+def _uvw_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
+    (t0, t1), (b0, b1) = block_info[0]["array-location"][:2]
+    return arr.baseline_uvw(ctx["positions"], ctx["a1"][b0:b1], ctx["a2"][b0:b1],
+                            ctx["times"][t0:t1], *ctx["centre"])
+
+
+def _flag_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
+    (t0, t1), (b0, b1) = block_info[0]["array-location"][:2]
+    nchan, npol = ctx["freq"].size, len(ctx["pols"])
+    out = np.zeros((t1 - t0, b1 - b0, nchan, npol), dtype=bool)
+    frac = ctx["flag_fraction"]
+    if frac > 0:
+        kernels._count("flag_random")
+        nbl_all = ctx["a1"].size
+        for k, ti in enumerate(range(t0, t1)):
+            u = _seed_rng(ctx["seed"], 3, ctx["pointing"], ti).uniform(size=(nbl_all, nchan, npol))
+            out[k] |= u[b0:b1] < frac
+    if ctx["shadowing"]:
+        kernels._count("flag_shadow")
+        ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["centre"])
+        sh = arr.shadowed_antennas(ant, ctx["diameters"])
+        bad = sh[:, ctx["a1"][b0:b1]] | sh[:, ctx["a2"][b0:b1]]
+        out |= bad[:, :, None, None]
+    return out
+
+
+def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
+    scene = plan.scene
+    centre = (float(plan.pointings[p, 0]), float(plan.pointings[p, 1]))
+    times = plan.times[p]
+    a1, a2 = baseline_pairs(plan.array.n_antennas)
+    nt, nbl, nchan, npol = times.size, a1.size, plan.freq.size, len(plan.pols)
+    dtype = np.dtype(scene.visibility_dtype)
+
+    l, m, _, nm1 = radec_to_lmn(plan.ra, plan.dec, *centre)
+    att = None
+    keep = plan.flux != 0
+    if plan.beam is not None:
+        sep = angular_separation(plan.ra, plan.dec, *centre)
+        att = plan.beam(sep[:, None], plan.freq[None, :])
+        keep &= att.max(axis=1, initial=0.0) > 0
+        att = np.ascontiguousarray(att[keep])
+    fwhm = plan.fwhm[keep]
+    ctx = {
+        "a1": a1, "a2": a2, "positions": plan.array.positions, "diameters": plan.array.diameters,
+        "times": times, "centre": centre, "freq": plan.freq, "pols": plan.pols,
+        "parallel": _parallel_hands(plan.pols), "l": l[keep], "m": m[keep],
+        "nm1": nm1[keep] if scene.effects.w_term else None, "flux": plan.flux[keep],
+        "att": att, "fwhm": fwhm, "extended": fwhm > 0, "sigma": plan.sigma,
+        "seed": int(seed), "pointing": p, "dtype": dtype,
+        "flag_fraction": scene.effects.flagging.random_fraction if scene.effects.flagging else 0.0,
+        "shadowing": bool(scene.effects.flagging and scene.effects.flagging.shadowing),
+    }
+    tc = scene.time_chunk or max(1, CHUNK_BYTES // max(1, nbl * nchan * npol * dtype.itemsize))
+    tc = min(tc, nt)
+    dummy = da.zeros((nt, nbl), chunks=(tc, nbl), dtype=np.int8)
+    vis = da.map_blocks(_vis_block, dummy, ctx=ctx, dtype=dtype, new_axis=[2, 3],
+                        chunks=(dummy.chunks[0], dummy.chunks[1], (nchan,), (npol,)),
+                        name=f"xstack-sim-vis-{token}-{p}", meta=np.empty((0, 0, 0, 0), dtype))
+    uvw = da.map_blocks(_uvw_block, dummy, ctx=ctx, dtype=np.float64, new_axis=[2],
+                        chunks=(dummy.chunks[0], dummy.chunks[1], (3,)),
+                        name=f"xstack-sim-uvw-{token}-{p}", meta=np.empty((0, 0, 0)))
+    if ctx["flag_fraction"] > 0 or ctx["shadowing"]:
+        flag = da.map_blocks(_flag_block, dummy, ctx=ctx, dtype=bool, new_axis=[2, 3],
+                             chunks=(dummy.chunks[0], dummy.chunks[1], (nchan,), (npol,)),
+                             name=f"xstack-sim-flag-{token}-{p}",
+                             meta=np.empty((0, 0, 0, 0), bool))
+    else:
+        flag = da.zeros((nt, nbl, nchan, npol), chunks=vis.chunks, dtype=bool)
+    if plan.sigma is not None:
+        w = (1.0 / plan.sigma**2).astype(np.float32)
+    else:
+        w = np.ones((nbl, nchan), dtype=np.float32)
+    weight = da.broadcast_to(da.from_array(w[None, :, :, None], chunks=-1),
+                             (nt, nbl, nchan, npol), chunks=vis.chunks)
+    ds = new_partition(
+        visibility=vis, weight=weight, flag=flag, uvw=uvw, time=times, antenna1=a1,
+        antenna2=a2, antenna_names=plan.array.names, antenna_positions=plan.array.positions,
+        dish_diameters=plan.array.diameters, frequency=plan.freq, channel_width=plan.width,
+        polarization=plan.pols, phase_center=centre, field_name=f"pointing{p}", field_id=p,
+        spectral_window_id=0, telescope_name=plan.array.telescope,
+        integration_time=float(scene.observation.integration),
+        attrs={"source": "xstack simulate", "scene_name": scene.name,
+               "simulation_seed": int(seed),
+               "noise_sigma_jy": (float(np.mean(plan.sigma)) if plan.sigma is not None
+                                  else 0.0)})
+    return ds
+
+
+def simulate_partitions(scene: Scene | dict | str | os.PathLike, *, seed: int = 0,
+                        scale: float = 1.0) -> tuple[dict[str, xr.Dataset], dict[str, Table]]:
+    """Lazy partitions (one per pointing, dask-backed) and true catalogs, without writing.
+
+    Returns
+    -------
+    partitions, catalogs
+        ``{partition name: xarray.Dataset}`` and ``{population name: astropy Table}``.
+    """
+    parts, cats, _ = _simulate_lazy(scene, seed=seed, scale=scale)
+    return parts, cats
+
+
+def _simulate_lazy(scene: Any, *, seed: int, scale: float
+                   ) -> tuple[dict[str, xr.Dataset], dict[str, Table], _Plan]:
+    plan = _plan(load_scene(scene), int(seed), float(scale))
+    token = dask.base.tokenize(plan.scene.to_dict(), int(seed), float(scale))
+    parts = {partition_name(0, p): _partition(plan, p, int(seed), token)
+             for p in range(len(plan.pointings))}
+    return parts, plan.catalogs, plan
+
+
+def catalog_path(store: str | os.PathLike, population: str) -> Path:
+    """``OUT.zarr`` -> ``OUT.<population>.ecsv`` (beside the store)."""
+    store = Path(store)
+    stem = store.name[:-5] if store.name.endswith(".zarr") else store.name
+    return store.parent / f"{stem}.{population}.ecsv"
+
+
+def simulate(scene: Scene | dict | str | os.PathLike, out: str | os.PathLike, *, seed: int = 0,
+             scale: float = 1.0, overwrite: bool = False, progress: bool = False
+             ) -> SimulationResult:
+    """Simulate ``scene`` and write the store ``out`` plus one true catalog per population.
+
+    Parameters
+    ----------
+    scene
+        A :class:`~xstack.sim.scene.Scene`, a dictionary or a TOML path.
+    out
+        Output ``.zarr`` store; catalogs go to ``OUT.<population>.ecsv``.
+    seed
+        Random seed: the same seed gives the same data bit for bit.
+    scale
+        In (0, 1]: shortens the observation and thins large populations
+        (:meth:`Scene.scaled`).
+    overwrite
+        Replace existing outputs.
+    progress
+        Progress bar on stderr.
+
+    Raises
+    ------
+    XstackError
+        For a bad scene (naming the field) or existing outputs; nothing is written then.
+    """
+    from xstack._atomic import atomic_output, check_output
+
+    out = Path(out)
+    parts, cats, plan = _simulate_lazy(scene, seed=seed, scale=scale)
+    paths = {name: catalog_path(out, name) for name in cats}
+    check_output(out, overwrite)
+    for p in paths.values():
+        check_output(p, overwrite)
+    attrs = {"simulation": {"scene": plan.scene.to_dict(), "seed": int(seed),
+                            "scale": float(scale), "steps": sorted(plan.steps),
+                            "catalogs": {k: v.name for k, v in paths.items()}}}
+    write_store(parts, out, overwrite=overwrite, attrs=attrs, progress=progress,
+                description="simulating")
+    for name, table in cats.items():
+        with atomic_output(paths[name], overwrite=overwrite) as tmp:
+            table.write(tmp, format="ascii.ecsv")
+    nvis = sum(int(np.prod([ds.sizes[d] for d in ("time", "baseline_id", "frequency",
+                                                   "polarization")])) for ds in parts.values())
+    return SimulationResult(store=out, catalogs=cats, catalog_paths=paths,
+                            steps_run=frozenset(plan.steps), n_visibilities=nvis,
+                            seed=int(seed), scale=float(scale),
+                            pointings=[(float(np.degrees(a)) % 360, float(np.degrees(b)))
+                                       for a, b in plan.pointings])
+
+
+def wavelength(frequency: Any) -> np.ndarray:
+    """Wavelength (m) of a frequency (Hz)."""
+    return SPEED_OF_LIGHT / np.asarray(frequency, dtype=np.float64)

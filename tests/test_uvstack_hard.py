@@ -89,7 +89,7 @@ def test_duplicate_positions(weighting, rng):
 
 
 def test_hundred_thousand_positions(rng):
-    ds = make_stack_partition(n_time=3, n_ant=5, n_chan=3, sigma=1.0, seed=4)
+    ds = make_stack_partition(n_time=2, n_ant=4, n_chan=3, sigma=1.0, seed=4)
     n = 100_000
     ra, dec = lm_to_radec(rng.uniform(-5e-3, 5e-3, n), rng.uniform(-5e-3, 5e-3, n), *VLA_CENTER)
     cat = _cat(ra, dec)

@@ -1,0 +1,73 @@
+"""``xstack fit``: fit a point or circular-Gaussian model to a stack (uv store or FITS stamp)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from xstack.errors import XstackError
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "fit", help="fit flux (and size) of a stacked source, uv- or image-domain",
+        description="Fit a point or circular Gaussian model to a uv-stacked store (weighted "
+                    "least squares on the visibilities) or to a stacked FITS stamp (Gaussian "
+                    "convolved with the dirty beam plus a constant). Paper section 3.4.")
+    p.add_argument("stacked", help="stacked store (.zarr, from xstack uvstack) or stamp (.fits, "
+                                   "from xstack imstack)")
+    p.add_argument("--model", choices=("point", "gaussian"), default="point")
+    p.add_argument("--uvmin", help="uv fit: minimum uv distance (5000m, 23.8klambda)")
+    p.add_argument("--uvmax", help="uv fit: maximum uv distance")
+    p.add_argument("--binned", action="store_true", help="uv fit: fit the binned uv-profile")
+    p.add_argument("--nbins", type=int, default=30, help="uv fit: bins for --binned (30)")
+    p.add_argument("--psf", help="image fit: dirty beam FITS (default: the stamp's PSF extension)")
+    p.add_argument("--fit-radius", type=float, metavar="ARCSEC",
+                   help="image fit: use pixels within this radius of the centre")
+    p.add_argument("--noise-correlation", choices=("psf", "residual", "none"), default="psf",
+                   help="image fit: pixel-noise correlation used for the errors (psf)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    return p
+
+
+def _is_fits(path: Path) -> bool:
+    return path.is_file() and path.suffix.lower() in (".fits", ".fit", ".fts", ".gz")
+
+
+def run(args: argparse.Namespace) -> int:
+    from xstack.cli import emit_json
+
+    path = Path(args.stacked)
+    if not path.exists():
+        raise XstackError(f"{path}: no such file or store")
+    if _is_fits(path):
+        if args.uvmin or args.uvmax or args.binned:
+            raise XstackError("--uvmin/--uvmax/--binned apply to uv-stacked stores, not FITS stamps")
+        from xstack.fit.imfit import fit_image
+
+        res = fit_image(path, psf=args.psf, model=args.model, fit_radius_arcsec=args.fit_radius,
+                        noise_correlation=args.noise_correlation)
+    else:
+        if args.psf or args.fit_radius is not None:
+            raise XstackError("--psf/--fit-radius apply to FITS stamps, not uv stores")
+        from xstack.fit.uvfit import fit_uv
+
+        res = fit_uv(path, model=args.model, uvmin=args.uvmin, uvmax=args.uvmax,
+                     binned=args.binned, nbins=args.nbins)
+    out = res.to_dict()
+    out["input"] = str(path)
+    if args.json:
+        emit_json(out)
+        return 0
+    print(f"{res.domain}-domain {res.model} fit of {path}")
+    print(f"  flux      = {res.flux_jy:.6g} +- {res.flux_err_jy:.3g} Jy")
+    if res.model == "gaussian":
+        print(f"  FWHM      = {res.fwhm_arcsec:.4g} +- {res.fwhm_err_arcsec:.3g} arcsec "
+              f"({'resolved' if res.resolved else 'unresolved'}; 95% upper limit "
+              f"{res.fwhm_upper_limit_arcsec:.4g} arcsec)")
+    if "background_jy_per_beam" in res.extra:
+        print(f"  constant  = {res.extra['background_jy_per_beam']:.4g} +- "
+              f"{res.extra['background_err_jy_per_beam']:.3g} Jy/beam")
+    what = "visibilities" if res.domain == "uv" else "pixels"
+    print(f"  chi2/dof  = {res.chi2_reduced:.4g} ({res.n_data} {what})")
+    return 0

@@ -1,0 +1,98 @@
+"""``xstack noise``: noise and bias of a stack (analytic, Monte Carlo, random, bootstrap)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from xstack.errors import XstackError
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "noise", help="estimate the noise and bias of a uv-stack",
+        description="Noise and bias of the uv-stacked flux at the catalog positions (paper "
+                    "section 3.5): analytic (eq. 6), mc (inject fake sources of the targets' "
+                    "flux and number at random positions into the residual data and stack, R "
+                    "times, all in one pass over the data), random (stack R sets of random "
+                    "empty positions) or bootstrap (resample the targets).")
+    p.add_argument("data", help="(residual) visibilities, xstack store (.zarr)")
+    p.add_argument("catalog", help="target catalog (ra, dec [deg], optional flux [Jy], weight)")
+    p.add_argument("--method", choices=("analytic", "mc", "random", "bootstrap"), default="mc")
+    p.add_argument("--realizations", type=int, default=100, help="number of realisations (100)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--flux", help="mc: injected flux (20uJy); default: catalog flux column, "
+                                  "else the stacked target flux")
+    p.add_argument("--min-separation", type=float, metavar="ARCSEC",
+                   help="random positions: minimum distance to targets, --avoid sources and "
+                        "each other (default: 3 synthesized beams)")
+    p.add_argument("--avoid", help="catalog of further positions to avoid (bright sources)")
+    p.add_argument("--weighting", choices=("pb", "none", "column"), default="pb")
+    p.add_argument("--primary-beam", choices=("auto", "airy", "gaussian", "none"), default="auto")
+    p.add_argument("--pb-cutoff", type=float, default=0.1)
+    p.add_argument("--uvmin", help="minimum uv distance (5000m, 23.8klambda)")
+    p.add_argument("--uvmax", help="maximum uv distance")
+    p.add_argument("--field-radius", type=float, metavar="ARCSEC",
+                   help="radius around each pointing for random positions")
+    p.add_argument("--png", help="histogram of the realisations (PNG)")
+    p.add_argument("--profile-png", help="uv-profiles of the realisations (PNG; mc/random)")
+    p.add_argument("--profile-bins", type=int, default=20)
+    p.add_argument("--table", help="per-realisation values (ECSV)")
+    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+
+    from xstack._atomic import atomic_output, check_output
+    from xstack.cli import emit_json
+    from xstack.noise.estimate import estimate_noise
+
+    for out in (args.png, args.profile_png, args.table):
+        if out:
+            check_output(out, args.overwrite)
+    if args.profile_png and args.method not in ("mc", "random"):
+        raise XstackError("--profile-png needs --method mc or random")
+    if args.realizations < 2 and args.method != "analytic":
+        raise XstackError(f"need at least 2 realisations to estimate a scatter, got {args.realizations}")
+    res = estimate_noise(
+        Path(args.data), args.catalog, method=args.method, realizations=args.realizations,
+        flux=args.flux, min_separation_arcsec=args.min_separation, avoid=args.avoid,
+        seed=args.seed, weighting=args.weighting,
+        primary_beam=None if args.primary_beam == "auto" else args.primary_beam,
+        pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
+        field_radius_arcsec=args.field_radius,
+        profile_bins=args.profile_bins if args.profile_png else 0,
+        progress=not args.no_progress and sys.stderr.isatty())
+    files = {}
+    if args.png and res.realizations >= 2:
+        from xstack.noise.plot import plot_histogram
+
+        files["png"] = str(plot_histogram(res, args.png, overwrite=args.overwrite))
+    if args.profile_png:
+        from xstack.noise.plot import plot_profiles
+
+        files["profile_png"] = str(plot_profiles(res, args.profile_png, overwrite=args.overwrite))
+    if args.table:
+        with atomic_output(args.table, overwrite=args.overwrite) as tmp:
+            res.table().write(str(tmp), format="ascii.ecsv")
+        files["table"] = str(args.table)
+    out = res.to_dict()
+    out.update(files)
+    if args.json:
+        emit_json(out)
+        return 0
+    uj = 1e6
+    print(f"noise estimate ({res.method}, {res.realizations} realisations, "
+          f"{res.n_positions} positions)")
+    print(f"  noise  = {res.noise_jy * uj:.4g} uJy")
+    if res.bias_jy is not None:
+        print(f"  bias   = {res.bias_jy * uj:.4g} uJy")
+    if res.target_flux_jy is not None:
+        print(f"  target stack = {res.target_flux_jy * uj:.4g} uJy")
+    for k, v in files.items():
+        print(f"  {k}: {v}")
+    return 0

@@ -31,7 +31,8 @@ class ImageInfo:
     Attributes
     ----------
     data
-        float array ``data[y, x]`` (NaN = blanked).
+        float array ``data[y, x]`` (NaN = blanked), native byte order, float32 kept as float32
+        (stamps are computed in float64).
     wcs
         2-D celestial :class:`astropy.wcs.WCS` (pixel 0-based via ``world_to_pixel_values``).
     name
@@ -119,7 +120,11 @@ def image_from_hdu(hdu: fits.ImageHDU | fits.PrimaryHDU, name: str, path: Path |
             continue
         raise XstackError(f"{name}: axis {wcs_axis + 1} ({ctype or 'unnamed'}) has {length} planes; "
                           "image-stacking needs a single 2-D plane (select one first)")
-    plane = np.asarray(data[tuple(index)], dtype=np.float64)
+    plane = np.array(data[tuple(index)])  # a copy: the file closes after reading
+    if not np.issubdtype(plane.dtype, np.floating):
+        plane = plane.astype(np.float64)
+    elif not plane.dtype.isnative:
+        plane = plane.astype(plane.dtype.newbyteorder("="))  # FITS is big-endian
     # numpy axis order is reversed from FITS: the longitude axis must be the last (x)
     if (naxis - 1 - lng) < (naxis - 1 - lat):
         plane = plane.T

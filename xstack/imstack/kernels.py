@@ -23,9 +23,30 @@ from scipy import ndimage
 #: the influence of the filled gap is below 0.5 % of the step at its border.
 SPLINE_NAN_GUARD = 4
 
-#: Extra pixels on each side of a stamp that a sub-pixel shift works on, so that the wrap
-#: of the Fourier shift and the boundary treatment of the spline stay outside the stamp.
+#: Least extra pixels on each side of a stamp that a Fourier shift works on, so that the
+#: circular wrap stays outside the stamp (its ringing decays as 1/distance).
 SHIFT_MARGIN = 16
+
+#: Extra pixels for the spline shift (its boundary influence decays as 0.268**distance).
+SPLINE_MARGIN = 8
+
+
+def padded_size(size: int, margin: int) -> int:
+    """Smallest odd 7-smooth length >= (size | 1) + 2 margin.
+
+    Odd, so no Nyquist cell breaks a fractional shift; 7-smooth, so the FFT is fast. An even
+    stamp is cut from an odd one of size + 1, which has the same centre index size // 2.
+    """
+    n = (size | 1) + 2 * margin
+    while True:
+        m = n
+        for p in (3, 5, 7):
+            while m % p == 0:
+                m //= p
+        if m == 1:
+            return n
+        n += 2
+
 
 #: Fewest finite pixels outside the central mask for a usable local noise estimate.
 MIN_NOISE_PIXELS = 16
@@ -161,8 +182,12 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
         return stamps, x - ix, y - iy
     if subpixel not in ("fourier", "spline"):
         raise ValueError(f"unknown sub-pixel method {subpixel!r}")
-    margin = SHIFT_MARGIN + ((size + 2 * SHIFT_MARGIN + 1) % 2)  # odd padded size for the FFT
-    padded, ix, iy = extract_stamps(image, x, y, size, margin)
+    odd = size | 1  # an even stamp is the first `size` pixels of an odd one, same centre
+    if subpixel == "fourier":
+        margin = (padded_size(size, SHIFT_MARGIN) - odd) // 2
+    else:
+        margin = SPLINE_MARGIN
+    padded, ix, iy = extract_stamps(image, x, y, odd, margin)
     fx, fy = x - ix, y - iy
     # the source sits at +f from the centre: move it by -f onto the centre pixel
     dx, dy = -fx, -fy

@@ -526,8 +526,9 @@ def _psf_stamp_for(info: ImageInfo, psf: Any, stamp_size: int) -> np.ndarray | N
         raise XstackError(f"{pinfo.name}: PSF pixel grid differs from the image {info.name}")
     data = np.nan_to_num(pinfo.data, nan=0.0)
     py, px = np.unravel_index(np.argmax(data), data.shape)
-    margin = kernels.SHIFT_MARGIN + ((stamp_size + 2 * kernels.SHIFT_MARGIN + 1) % 2)
-    st, _, _ = kernels.extract_stamps(data, np.array([px]), np.array([py]), stamp_size, margin)
+    odd = stamp_size | 1
+    margin = (kernels.padded_size(stamp_size, kernels.SHIFT_MARGIN) - odd) // 2
+    st, _, _ = kernels.extract_stamps(data, np.array([px]), np.array([py]), odd, margin)
     return np.nan_to_num(st[0], nan=0.0)
 
 
@@ -543,7 +544,7 @@ def _psf_stack(infos: list[ImageInfo], psfs: list[Any], stamp_size: int, img_idx
             padded[i] = p
     if not padded:
         return None
-    margin = (next(iter(padded.values())).shape[0] - stamp_size) // 2
+    margin = (next(iter(padded.values())).shape[0] - (stamp_size | 1)) // 2
     total = np.zeros((stamp_size, stamp_size))
     wtot = 0.0
     for i, p in padded.items():

@@ -123,3 +123,33 @@ def test_complex64_output_and_empty(rng):
     assert out.dtype == np.complex64
     empty = model_visibilities(uvw, [1e9], [], [], None, [])
     assert empty.shape == (10, 1) and not empty.any()
+
+
+@pytest.mark.parametrize("uniform", [True, False])
+def test_antenna_kernel_equals_baseline_kernel(rng, uniform):
+    """Per-antenna phasors give the baseline sum (points and Gaussians, w-term, beam)."""
+    from xstack.schema import baseline_pairs
+    from xstack.sim.kernels import model_visibilities_antenna
+
+    nant, nt, nsrc = 9, 4, 25
+    ant = rng.normal(scale=8000.0, size=(nt, nant, 3))
+    a1, a2 = baseline_pairs(nant)
+    uvw = (ant[:, a1] - ant[:, a2]).reshape(-1, 3)
+    freq = (np.linspace(1.3e9, 1.5e9, 12) if uniform
+            else np.sort(rng.uniform(1.3e9, 1.5e9, 12))[::-1].copy())
+    l = rng.uniform(-5e-3, 5e-3, nsrc)
+    m = rng.uniform(-5e-3, 5e-3, nsrc)
+    l[0] = m[0] = 0.0  # one at the phase centre
+    nm1 = -(l**2 + m**2) / (1 + np.sqrt(1 - l**2 - m**2))
+    flux = rng.uniform(0, 1, nsrc)
+    att = rng.uniform(0.1, 1, (nsrc, 12))
+    fwhm = np.where(rng.uniform(size=nsrc) < 0.4, np.radians(rng.uniform(0.5, 5, nsrc) / 3600), 0)
+    ref = direct_eq1(uvw, freq, l, m, nm1, flux, att, fwhm).reshape(nt, a1.size, 12)
+    got = model_visibilities_antenna(ant, a1, a2, freq, l, m, nm1, flux, att, fwhm)
+    assert np.abs(got - ref).max() / flux.sum() < 1e-9
+    ser = model_visibilities_antenna(ant, a1, a2, freq, l, m, nm1, flux, att, fwhm,
+                                     parallel=False)
+    assert np.array_equal(ser, got)
+    with kernels.record_steps() as steps:
+        model_visibilities_antenna(ant, a1, a2, freq, [0.0], [0.0], None, [1.0])
+    assert steps == {"constant": 1}

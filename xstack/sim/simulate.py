@@ -332,23 +332,10 @@ def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None
     out = np.zeros((nt, nb, nchan, npol), dtype=np.complex128)
     if ctx["flux"].size:
         ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["centre"])
-        model = np.zeros((nt, nb, nchan), dtype=np.complex128)
-        ext = ctx["extended"]
-        pts = ~ext
-        att, nm1 = ctx["att"], ctx["nm1"]
-        if pts.any():
-            # point sources: per-antenna phasors (one per antenna rather than per baseline)
-            model += kernels.model_visibilities_antenna(
-                ant, a1, a2, ctx["freq"], ctx["l"][pts], ctx["m"][pts],
-                None if nm1 is None else nm1[pts], ctx["flux"][pts],
-                None if att is None else att[pts], parallel=False)
-        if ext.any():
-            uvw = (ant[:, a1, :] - ant[:, a2, :]).reshape(-1, 3)
-            model += kernels.model_visibilities(
-                uvw, ctx["freq"], ctx["l"][ext], ctx["m"][ext],
-                None if nm1 is None else nm1[ext], ctx["flux"][ext],
-                None if att is None else att[ext], ctx["fwhm"][ext],
-                parallel=False).reshape(nt, nb, nchan)
+        # per-antenna phasors: one sincos pair per antenna (not per baseline) and source
+        model = kernels.model_visibilities_antenna(
+            ant, a1, a2, ctx["freq"], ctx["l"], ctx["m"], ctx["nm1"], ctx["flux"], ctx["att"],
+            ctx["fwhm"] if ctx["extended"].any() else None, parallel=False)
         out[..., ctx["parallel"]] = model[..., None]
     sigma = ctx["sigma"]
     if sigma is not None:

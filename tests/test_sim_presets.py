@@ -96,3 +96,19 @@ def test_every_preset_simulates_and_writes(name, tmp_path):
     res = simulate(preset_scene(name), tmp_path / "p.zarr", seed=1, scale=SCALE)
     assert res.n_visibilities > 0 and set(res.catalogs) == {"bright", "targets"}
     assert all(p.exists() for p in res.catalog_paths.values())
+
+
+@pytest.mark.parametrize("name, span_h", [("paper-1", 9.4), ("paper-8", 2.2)])
+def test_observations_are_centred_on_transit(name, span_h):
+    from xstack.sim import arrays
+
+    parts, _ = simulate_partitions(preset_scene(name), scale=1.0)
+    times = np.concatenate([ds.time.values for ds in parts.values()])
+    first = next(iter(parts.values()))
+    pos = first.ANTENNA_POSITION.values
+    lon, _, _ = arrays.geodetic(pos.mean(axis=0))
+    ra0 = math.radians(57.2957916666667)
+    mid = 0.5 * (times.min() + times.max())
+    ha = (arrays.greenwich_sidereal_angle(mid)[0] + lon - ra0 + math.pi) % (2 * math.pi) - math.pi
+    assert abs(math.degrees(ha) / 15) < 0.01
+    assert (times.max() - times.min()) / 3600 == pytest.approx(span_h, abs=0.01)

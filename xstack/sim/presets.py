@@ -44,7 +44,7 @@ SPARSE_ANTENNAS = ["W16", "W48", "W72", "E16", "E48", "E72", "N32", "N64"]
 def _vla_base() -> dict[str, Any]:
     return {
         "array": {"config": "vla.a"},
-        "observation": {"date": "2014-01-01", "hour_angle": [-4.7, 4.7], "integration": 10.0,
+        "observation": {"date": "2014-01-01", "hour_angle": [-4.8, 4.8], "integration": 10.0,
                         "time_per_pointing": 33840.0},
         "spectral": {"centre": 1.4e9, "bandwidth": 250e6, "channels": 10,
                      "polarizations": ["RR", "LL"]},

@@ -1,11 +1,13 @@
 """MeasurementSet -> xstack zarr store (``xstack convert``).
 
-The MS is read in row blocks: one dask task per (partition, time chunk, baseline chunk) reads
-its rows with python-casacore under a process-wide lock and scatters them into the dense
-(time, baseline_id, frequency, polarization) grid of the xstack schema; the store is written
-through :func:`xstack.schema.write_store` (atomic: temporary name, completion flag last,
-rename), which computes the chunks a few at a time. Peak memory is therefore a few chunks
-plus a small per-row index (~40 bytes per MS row), never the whole MS.
+The MS is read one output chunk (partition x time chunk x baseline chunk) at a time: its rows
+are copied by python-casacore (under a process-wide lock) straight into reusable buffers laid
+out as the dense (time, baseline_id, frequency, polarization) grid of the xstack schema, and
+a second thread compresses and writes the previous chunk into the zarr store. The store is
+created and completed by :func:`xstack.io._store.region_store`, which follows the atomic
+protocol of :func:`xstack.schema.write_store` (temporary name, completion flag last,
+rename). Peak memory is therefore two chunks plus a small per-row index (~50 bytes per MS
+row), never the whole MS.
 
 Partitions are one per (spectral window, field) - strictly per DATA_DESC_ID - and one per
 scan as well where a single time grid would be irregular: scans with different integration
@@ -14,9 +16,8 @@ times, or the same (time, baseline) cell more than once.
 
 from __future__ import annotations
 
-import operator
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,10 +27,22 @@ import numpy as np
 from xstack._atomic import check_output
 from xstack.errors import XstackError
 from xstack.io import msread
-from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name, write_store
+from xstack.io._store import region_store
+from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name
 
 #: Visibility columns accepted by ``datacolumn`` (any other complex array column also works).
 DATA_COLUMNS = ("DATA", "CORRECTED_DATA", "MODEL_DATA")
+
+def _encoding() -> dict[str, dict[str, Any]]:
+    """zarr codecs of the big arrays: blosc-lz4 with byte shuffle compresses visibilities as well
+    as zarr's default zstd at a fraction of its CPU time; bit shuffle suits flags."""
+    from zarr.codecs import BloscCodec
+
+    fast = BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
+    return {"VISIBILITY": {"compressors": fast}, "WEIGHT": {"compressors": fast},
+            "UVW": {"compressors": fast},
+            "FLAG": {"compressors": BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")}}
+
 
 _INDEX_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "SCAN_NUMBER",
                   "INTERVAL")
@@ -126,7 +139,8 @@ def _plan_partitions(index: dict[str, np.ndarray], meta: msread.MSMeta, where: s
         if np.unique(gscans).size > 1:
             per_scan_interval = {int(s): np.unique(interval[grows[gscans == s]]) for s in np.unique(gscans)}
             distinct = np.unique(np.concatenate(list(per_scan_interval.values())))
-            cells = np.unique(np.column_stack([time[grows], a1[grows], a2[grows]]), axis=0).shape[0]
+            t_inv = np.unique(time[grows], return_inverse=True)[1].astype(np.int64)
+            cells = np.unique((t_inv * n_ant + a1[grows]) * n_ant + a2[grows]).size
             if distinct.size > 1 or cells < grows.size:
                 groups = [(int(s), grows[gscans == s]) for s in np.unique(gscans)]
         for s, rows in groups:
@@ -142,7 +156,9 @@ def _grid(rows: np.ndarray, time: np.ndarray, a1: np.ndarray, a2: np.ndarray, sc
           interval: np.ndarray, ddid: int, field_id: int, scan_id: int | None, meta: msread.MSMeta,
           where: str) -> _Plan:
     times, t_index = np.unique(time[rows], return_inverse=True)
-    pairs, b_index = np.unique(np.column_stack([a1[rows], a2[rows]]), axis=0, return_inverse=True)
+    n_ant = max(len(meta.antenna_names), 1)
+    keys, b_index = np.unique(a1[rows].astype(np.int64) * n_ant + a2[rows], return_inverse=True)
+    pairs = np.column_stack([keys // n_ant, keys % n_ant])
     b_index = b_index.ravel()
     cell = t_index.astype(np.int64) * pairs.shape[0] + b_index
     if np.unique(cell).size < cell.size:
@@ -196,51 +212,87 @@ def _chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,
     return min(max(1, ct), max(n_time, 1)), min(max(1, cb), max(n_bl, 1))
 
 
-def _lazy_partition(plan: _Plan, spec: msread.BlockSpec, ct: int, cb: int) -> dict[str, Any]:
-    """Dask arrays of one partition: one casacore read task per (time, baseline) chunk."""
-    import dask.array as da
-    from dask.base import tokenize
-    from dask.highlevelgraph import HighLevelGraph
-
+def _blocks(plan: _Plan, ct: int, cb: int) -> Iterator[tuple[int, int, int, int, np.ndarray, np.ndarray,
+                                                              np.ndarray]]:
+    """(t0, t1, b0, b1, rows, t_index, b_index) of every chunk, rows ascending within a chunk."""
     nt, nb = plan.times.size, plan.antenna1.size
-    t_edges = list(range(0, nt, ct)) + [nt]
-    b_edges = list(range(0, nb, cb)) + [nb]
-    token = tokenize(spec, plan.name, plan.rows, ct, cb)
-    read_name = f"ms-read-{token}"
-    read_layer: dict = {}
+    t_edges = [*range(0, nt, ct), nt]
+    b_edges = [*range(0, nb, cb), nb]
     # rows are sorted by time index, so a time chunk is a slice of them
     t_starts = np.searchsorted(plan.t_index, t_edges)
     for i in range(len(t_edges) - 1):
         r0, r1 = t_starts[i], t_starts[i + 1]
         rows, ti, bi = plan.rows[r0:r1], plan.t_index[r0:r1] - t_edges[i], plan.b_index[r0:r1]
         for j in range(len(b_edges) - 1):
-            sel = (bi >= b_edges[j]) & (bi < b_edges[j + 1])
+            sel = (bi >= b_edges[j]) & (bi < b_edges[j + 1]) if len(b_edges) > 2 else slice(None)
             o = np.argsort(rows[sel], kind="stable")  # casacore reads rows in ascending order
-            read_layer[(read_name, i, j)] = (
-                msread.read_block, spec, rows[sel][o], ti[sel][o], bi[sel][o] - b_edges[j],
-                t_edges[i + 1] - t_edges[i], b_edges[j + 1] - b_edges[j],
-                plan.times[t_edges[i]:t_edges[i + 1]])
-    tchunks = tuple(np.diff(t_edges).tolist())
-    bchunks = tuple(np.diff(b_edges).tolist())
-    nc, npol = spec.n_channels, spec.n_pols
+            yield (t_edges[i], t_edges[i + 1], b_edges[j], b_edges[j + 1], rows[sel][o], ti[sel][o],
+                   bi[sel][o] - b_edges[j])
+
+
+def _placeholders(plan: _Plan, spec: msread.BlockSpec, ct: int, cb: int) -> dict[str, Any]:
+    """Never-computed dask arrays that give the store its array shapes, dtypes and chunks."""
+    import dask.array as da
+
+    nt, nb, nc, npol = plan.times.size, plan.antenna1.size, spec.n_channels, spec.n_pols
     layout = {
-        "VISIBILITY": ((tchunks, bchunks, (nc,), (npol,)), np.dtype(spec.vis_dtype)),
-        "WEIGHT": ((tchunks, bchunks, (nc,), (npol,)), np.dtype(np.float32)),
-        "FLAG": ((tchunks, bchunks, (nc,), (npol,)), np.dtype(bool)),
-        "UVW": ((tchunks, bchunks, (3,)), np.dtype(np.float64)),
-        "TIME_CENTROID": ((tchunks, bchunks), np.dtype(np.float64)),
-        "EFFECTIVE_INTEGRATION_TIME": ((tchunks, bchunks), np.dtype(np.float64)),
+        "VISIBILITY": ((nt, nb, nc, npol), spec.vis_dtype),
+        "WEIGHT": ((nt, nb, nc, npol), np.float32),
+        "FLAG": ((nt, nb, nc, npol), bool),
+        "UVW": ((nt, nb, 3), np.float64),
+        "TIME_CENTROID": ((nt, nb), np.float64),
+        "EFFECTIVE_INTEGRATION_TIME": ((nt, nb), np.float64),
     }
-    out = {}
-    for var, (chunks, dtype) in layout.items():
-        name = f"{var.lower()}-{token}"
-        extra = (0,) * (len(chunks) - 2)
-        layer = {(name, i, j, *extra): (operator.getitem, (read_name, i, j), var)
-                 for i in range(len(tchunks)) for j in range(len(bchunks))}
-        graph = HighLevelGraph({read_name: read_layer, name: layer},
-                               {read_name: set(), name: {read_name}})
-        out[var] = da.Array(graph, name, chunks, dtype=dtype)
-    return out
+    return {var: da.empty(shape, chunks=(ct, cb, *shape[2:]), dtype=dtype)
+            for var, (shape, dtype) in layout.items()}
+
+
+def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: list[tuple[int, int]],
+          progress: bool, description: str) -> None:
+    """Read every chunk from the MS and write it into the store.
+
+    One thread reads (casacore) into one of two reusable buffer sets while a second thread
+    compresses and writes the previous chunk, so memory holds at most two chunks.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    import zarr
+
+    from xstack._progress import progress_iter
+
+    total = sum(-(-p.times.size // ct) * -(-p.antenna1.size // cb) for p, (ct, cb) in zip(plans, sizes))
+    bar = progress_iter(range(total), description, enabled=progress) if progress else None
+
+    def write(arrays: dict[str, Any], block: dict[str, np.ndarray], t0: int, t1: int, b0: int,
+              b1: int) -> None:
+        for var, values in block.items():
+            arrays[var][t0:t1, b0:b1] = values
+        if bar is not None:
+            bar.update(1)
+
+    # every chunk is written exactly once, so zarr need not compare chunks with the fill value
+    with zarr.config.set({"array.write_empty_chunks": True}), ThreadPoolExecutor(1) as pool:
+        pending = None
+        try:
+            for plan, spec, (ct, cb) in zip(plans, specs, sizes):
+                group = root[plan.name]
+                arrays = {var: group[var] for var in msread.BLOCK_VARS}
+                buffers = [msread.block_buffers(spec, min(ct, plan.times.size), min(cb, plan.antenna1.size))
+                           for _ in range(2)]
+                for k, (t0, t1, b0, b1, rows, ti, bi) in enumerate(_blocks(plan, ct, cb)):
+                    block = msread.read_block(spec, rows, ti, bi, t1 - t0, b1 - b0, plan.times[t0:t1],
+                                              buffers=buffers[k % 2])
+                    if pending is not None:
+                        pending.result()  # the other buffer set is free again
+                    pending = pool.submit(write, arrays, block, t0, t1, b0, b1)
+                if pending is not None:
+                    pending.result()
+                    pending = None
+        finally:
+            if pending is not None:
+                pending.cancel()
+            if bar is not None:
+                bar.close()
 
 
 def convert_ms(
@@ -289,8 +341,6 @@ def convert_ms(
         If ``ms`` is not a MeasurementSet, the column does not exist, the MS has no rows,
         or ``out`` exists without ``overwrite``. Nothing is written then.
     """
-    import dask
-
     from xstack import __version__
 
     ms_path = msread.check_ms(ms)
@@ -310,11 +360,15 @@ def convert_ms(
         del index
         itemsize = np.dtype(vis_dtype).itemsize
         partitions = {}
+        specs: list[msread.BlockSpec] = []
+        sizes: list[tuple[int, int]] = []
         for plan in plans:
             spec = _block_spec(path, plan, meta, column, vis_dtype)
             ct, cb = _chunk_sizes(plan.times.size, plan.antenna1.size, spec.n_channels, spec.n_pols,
                                   itemsize, chunk_sizes)
-            arrays = _lazy_partition(plan, spec, ct, cb)
+            arrays = _placeholders(plan, spec, ct, cb)
+            specs.append(spec)
+            sizes.append((ct, cb))
             spw = int(meta.ddid_spw[plan.ddid])
             pols = meta.pol_names[int(meta.ddid_pol[plan.ddid])]
             attrs = {"data_description_id": plan.ddid, "weight_source": spec.weight_source,
@@ -341,9 +395,9 @@ def convert_ms(
             partitions[plan.name] = ds
         root_attrs = {"source_ms": path, "data_column": column, "xstack_version": __version__,
                       "created_by": f"xstack {__version__} convert_ms"}
-        # casacore reads serialise on a lock; a second thread compresses and writes meanwhile
-        with dask.config.set(scheduler="threads", num_workers=2):
-            return write_store(partitions, out, overwrite=overwrite, attrs=root_attrs,
-                               progress=progress, description=f"convert {ms_path.name}")
+        with region_store(partitions, out, overwrite=overwrite, attrs=root_attrs,
+                          encoding=_encoding()) as root:
+            _fill(root, plans, specs, sizes, progress, f"convert {ms_path.name}")
+        return out
     finally:
         msread.close_tables(path)

@@ -250,8 +250,22 @@ class BlockSpec:
     has_exposure: bool
 
 
+BLOCK_VARS = ("VISIBILITY", "WEIGHT", "FLAG", "UVW", "TIME_CENTROID", "EFFECTIVE_INTEGRATION_TIME")
+
+
+def block_buffers(spec: BlockSpec, n_time: int, n_baseline: int) -> dict[str, np.ndarray]:
+    """Flat buffers big enough for one (n_time, n_baseline) block, reusable across blocks."""
+    n = n_time * n_baseline
+    m = n * spec.n_channels * spec.n_pols
+    return {"VISIBILITY": np.empty(m, dtype=spec.vis_dtype), "WEIGHT": np.empty(m, dtype=np.float32),
+            "FLAG": np.empty(m, dtype=bool), "UVW": np.empty(3 * n, dtype=np.float64),
+            "TIME_CENTROID": np.empty(n, dtype=np.float64),
+            "EFFECTIVE_INTEGRATION_TIME": np.empty(n, dtype=np.float64)}
+
+
 def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: np.ndarray,
-               n_time: int, n_baseline: int, times: np.ndarray) -> dict[str, np.ndarray]:
+               n_time: int, n_baseline: int, times: np.ndarray,
+               buffers: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Read MS rows into dense (time, baseline, ...) arrays of one block.
 
     Parameters
@@ -261,74 +275,110 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
     t_index, b_index
         Time and baseline position of every row inside the block.
     n_time, n_baseline
-        Block shape; cells without a row stay padded (NaN visibility, zero weight, FLAG).
+        Block shape; cells without a row stay padded (NaN visibility, zero weight, FLAG,
+        zero UVW).
     times
-        The block's time coordinate (padding for TIME_CENTROID).
+        The block's time coordinate (TIME_CENTROID of padding cells).
+    buffers
+        Flat arrays from :func:`block_buffers` to fill (avoids allocating per block).
 
     Returns
     -------
     dict
-        VISIBILITY, WEIGHT, FLAG (time, baseline, channel, polarization), UVW (time,
-        baseline, 3), TIME_CENTROID and EFFECTIVE_INTEGRATION_TIME (time, baseline).
+        C-contiguous VISIBILITY, WEIGHT, FLAG (time, baseline, channel, polarization), UVW
+        (time, baseline, 3), TIME_CENTROID and EFFECTIVE_INTEGRATION_TIME (time, baseline).
     """
     nc, npol = spec.n_channels, spec.n_pols
-    vis = np.full((n_time, n_baseline, nc, npol), complex(np.nan, np.nan), dtype=spec.vis_dtype)
-    weight = np.zeros((n_time, n_baseline, nc, npol), dtype=np.float32)
-    flag = np.ones((n_time, n_baseline, nc, npol), dtype=bool)
-    uvw = np.zeros((n_time, n_baseline, 3), dtype=np.float64)
-    centroid = np.broadcast_to(np.asarray(times, np.float64)[:, None], (n_time, n_baseline)).copy()
-    exposure = np.zeros((n_time, n_baseline), dtype=np.float64)
+    buf = buffers if buffers is not None else block_buffers(spec, n_time, n_baseline)
+    ncell = n_time * n_baseline
+    shapes = {"VISIBILITY": (ncell, nc, npol), "WEIGHT": (ncell, nc, npol), "FLAG": (ncell, nc, npol),
+              "UVW": (ncell, 3), "TIME_CENTROID": (ncell,), "EFFECTIVE_INTEGRATION_TIME": (ncell,)}
+    # cell views: one row of the MS = one cell (time, baseline)
+    cells = {k: buf[k][:int(np.prod(v))].reshape(v) for k, v in shapes.items()}
+    vis, weight, flag, uvw = cells["VISIBILITY"], cells["WEIGHT"], cells["FLAG"], cells["UVW"]
+    centroid, exposure = cells["TIME_CENTROID"], cells["EFFECTIVE_INTEGRATION_TIME"]
+    cell_index = t_index.astype(np.int64) * n_baseline + b_index
+    if rows.size < ncell:  # an irregular grid: pad the cells no row will fill
+        vis[...] = complex(np.nan, np.nan)
+        weight[...] = 0.0
+        flag[...] = True
+        uvw[...] = 0.0
+        exposure[...] = 0.0
+    centroid[...] = np.repeat(np.asarray(times, np.float64), n_baseline)
+    out = {"VISIBILITY": (n_time, n_baseline, nc, npol), "WEIGHT": (n_time, n_baseline, nc, npol),
+           "FLAG": (n_time, n_baseline, nc, npol), "UVW": (n_time, n_baseline, 3),
+           "TIME_CENTROID": (n_time, n_baseline), "EFFECTIVE_INTEGRATION_TIME": (n_time, n_baseline)}
+    result = {k: cells[k].reshape(v) for k, v in out.items()}
     if rows.size == 0:
-        return {"VISIBILITY": vis, "WEIGHT": weight, "FLAG": flag, "UVW": uvw,
-                "TIME_CENTROID": centroid, "EFFECTIVE_INTEGRATION_TIME": exposure}
+        return result
 
-    columns = [spec.data_column, "UVW"]
-    if spec.flag_defined:
-        columns.append("FLAG")
-    if spec.has_flag_row:
-        columns.append("FLAG_ROW")
-    if spec.weight_source != "NONE":
-        columns.append(spec.weight_source)
+    small = ["FLAG_ROW"] if spec.has_flag_row else []
+    if spec.weight_source in ("WEIGHT", "SIGMA"):
+        small.append(spec.weight_source)
     if spec.has_centroid:
-        columns.append("TIME_CENTROID")
+        small.append("TIME_CENTROID")
     if spec.has_exposure:
-        columns.append("EXPOSURE")
-    cell = nc * npol * (np.dtype(spec.vis_dtype).itemsize + 5)
-    batch = max(1, READ_BATCH_BYTES // cell)
+        small.append("EXPOSURE")
+    big = [(spec.data_column, vis), ("UVW", uvw)]
+    if spec.flag_defined:
+        big.append(("FLAG", flag))
+    if spec.weight_source == "WEIGHT_SPECTRUM":
+        big.append(("WEIGHT_SPECTRUM", weight))
+    cell_bytes = nc * npol * (np.dtype(spec.vis_dtype).itemsize + 5)
+    batch = max(1, READ_BATCH_BYTES // cell_bytes)
     for k in range(0, rows.size, batch):
-        r = rows[k:k + batch]
-        ti, bi = t_index[k:k + batch], b_index[k:k + batch]
+        r, c = rows[k:k + batch], cell_index[k:k + batch]
+        n = r.size
+        direct = (int(r[-1]) - int(r[0]) + 1 == n) and (int(c[-1]) - int(c[0]) + 1 == n) \
+            and bool(np.all(np.diff(c) == 1))
         with CASACORE_LOCK:
             tab = _table(spec.path)
             try:
-                got = _get_rows(tab, r, columns)
+                if direct:
+                    # rows map one-to-one onto consecutive cells: casacore writes in place
+                    c0 = int(c[0])
+                    for col, dest in big:
+                        tab.getcolnp(col, dest[c0:c0 + n], startrow=int(r[0]), nrow=n)
+                    got = {col: tab.getcol(col, startrow=int(r[0]), nrow=n) for col in small}
+                else:
+                    got = _get_rows(tab, r, [col for col, _ in big] + small)
             except RuntimeError as exc:
                 raise XstackError(f"{spec.path}: cannot read rows {int(r[0])}-{int(r[-1])} "
                                   f"({exc})") from None
-        data = got[spec.data_column]
-        if data.shape[1:] != (nc, npol):
-            raise XstackError(f"{spec.path}: {spec.data_column} cells have shape {data.shape[1:]}, "
-                              f"expected ({nc}, {npol}) from the spectral window and polarization")
-        vis[ti, bi] = data
-        f = got["FLAG"].astype(bool, copy=False) if spec.flag_defined else np.zeros(data.shape, bool)
-        if spec.has_flag_row:
-            f = f | got["FLAG_ROW"].astype(bool)[:, None, None]
-        flag[ti, bi] = f
-        if spec.weight_source == "WEIGHT_SPECTRUM":
-            weight[ti, bi] = got["WEIGHT_SPECTRUM"]
-        elif spec.weight_source == "WEIGHT":
-            weight[ti, bi] = got["WEIGHT"][:, None, :]
+        if direct:
+            sl = slice(int(c[0]), int(c[0]) + n)
+            if not spec.flag_defined:
+                flag[sl] = False
+            if spec.has_flag_row:
+                fr = got["FLAG_ROW"].astype(bool)
+                if fr.any():
+                    flag[sl][fr] = True
+        else:
+            data = got[spec.data_column]
+            if data.shape[1:] != (nc, npol):
+                raise XstackError(f"{spec.path}: {spec.data_column} cells have shape {data.shape[1:]}, "
+                                  f"expected ({nc}, {npol}) from the spectral window and polarization")
+            vis[c] = data
+            f = got["FLAG"].astype(bool, copy=False) if spec.flag_defined else np.zeros(data.shape, bool)
+            if spec.has_flag_row:
+                f = f | got["FLAG_ROW"].astype(bool)[:, None, None]
+            flag[c] = f
+            uvw[c] = got["UVW"]
+            if spec.weight_source == "WEIGHT_SPECTRUM":
+                weight[c] = got["WEIGHT_SPECTRUM"]
+        if spec.weight_source == "WEIGHT":
+            weight[c] = got["WEIGHT"][:, None, :]
         elif spec.weight_source == "SIGMA":
             sigma = got["SIGMA"].astype(np.float64)
             with np.errstate(divide="ignore", invalid="ignore"):
                 w = np.where((sigma > 0) & np.isfinite(sigma), 1.0 / (sigma * sigma), 0.0)
-            weight[ti, bi] = w[:, None, :].astype(np.float32)
-        else:
-            weight[ti, bi] = 1.0
-        uvw[ti, bi] = got["UVW"]
+            weight[c] = w[:, None, :].astype(np.float32)
+        elif spec.weight_source == "NONE":
+            weight[c] = 1.0
         if spec.has_centroid:
-            centroid[ti, bi] = got["TIME_CENTROID"]
+            centroid[c] = got["TIME_CENTROID"]
         if spec.has_exposure:
-            exposure[ti, bi] = got["EXPOSURE"]
-    return {"VISIBILITY": vis, "WEIGHT": weight, "FLAG": flag, "UVW": uvw,
-            "TIME_CENTROID": centroid, "EFFECTIVE_INTEGRATION_TIME": exposure}
+            exposure[c] = got["EXPOSURE"]
+    if not spec.has_exposure:
+        exposure[...] = 0.0
+    return result

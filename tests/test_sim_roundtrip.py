@@ -45,3 +45,32 @@ def test_simulate_export_convert_identical(tmp_path):
         assert np.array_equal(da.time.values, db.time.values)
         assert np.array_equal(da.frequency.values, db.frequency.values)
         assert list(da.polarization.values) == list(db.polarization.values)
+
+
+def test_imaging_puts_simulated_source_at_its_catalog_position(tmp_path):
+    """Cross-stage convention check: xstack's (ducc0) imager finds the simulated source at
+    the catalog RA/Dec with its flux (w-term and primary beam off)."""
+    import math
+
+    image = pytest.importorskip("xstack.imaging.image")
+    ra = RA0 + 6 / 3600 / math.cos(math.radians(DEC0))
+    dec = DEC0 + 3 / 3600
+    scene = {
+        "name": "img", "array": {"config": "alma.cycle1.2"},
+        "observation": {"hour_angle": [-1, 1], "integration": 6.0, "time_per_pointing": 60.0},
+        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 4, "polarizations": ["XX", "YY"]},
+        "pointings": {"mode": "single", "centre": [RA0, DEC0]},
+        "populations": [{"name": "s", "count": 1, "flux": {"kind": "fixed", "value": 1.0},
+                         "positions": {"kind": "list", "ra": [ra], "dec": [dec]}}],
+    }
+    res = simulate(scene, tmp_path / "img.zarr")
+    img = image.make_image(res.store, size=128, cell_arcsec=0.2)
+    data = np.squeeze(img.image)
+    iy, ix = np.unravel_index(np.argmax(data), data.shape)
+    wcs = img.wcs.celestial if hasattr(img.wcs, "celestial") else img.wcs
+    sky = wcs.pixel_to_world(ix, iy)
+    assert abs(sky.ra.deg - ra) * 3600 * math.cos(math.radians(DEC0)) < 0.1
+    assert abs(sky.dec.deg - dec) * 3600 < 0.1
+    assert data.max() == pytest.approx(1.0, abs=0.01)
+    # the mirrored position (wrong sign convention) would be empty
+    assert data[data.shape[0] - iy, data.shape[1] - ix] < 0.5

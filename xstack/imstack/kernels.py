@@ -276,12 +276,16 @@ def local_sigma(stamps: np.ndarray, mask: np.ndarray, min_pixels: int = MIN_NOIS
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     outside = stamps[:, ~mask]
-    count = np.isfinite(outside).sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.nansum(outside, axis=1) / count
-        var = np.nansum((outside - mean[:, None]) ** 2, axis=1) / (count - 1)
-    sigma = np.sqrt(var)
-    sigma[count < min_pixels] = np.nan
+    finite = np.isfinite(outside)
+    full = finite.all(axis=1)
+    sigma = np.full(stamps.shape[0], np.nan)
+    if outside.shape[1] >= max(min_pixels, 2) and full.any():
+        # the common case (stamp inside the image) without the copies of the nan-functions
+        sigma[full] = outside[full].std(axis=1, ddof=1)
+    for k in np.flatnonzero(~full):
+        vals = outside[k][finite[k]]
+        if vals.size >= max(min_pixels, 2):
+            sigma[k] = vals.std(ddof=1)
     return sigma
 
 
@@ -301,9 +305,13 @@ def weighted_nanmean(stamps: np.ndarray, weights: np.ndarray) -> tuple[np.ndarra
     stamps = np.asarray(stamps, dtype=np.float64)
     w = np.asarray(weights, dtype=np.float64)
     finite = np.isfinite(stamps)
-    wk = np.where(finite, w[:, None, None], 0.0)
-    wsum = wk.sum(axis=0)
-    num = np.einsum("kyx,kyx->yx", wk, np.where(finite, stamps, 0.0))
+    if finite.all():  # no stamp off the image: a plain weighted sum
+        wsum = np.full(stamps.shape[1:], w.sum())
+        num = np.tensordot(w, stamps, axes=(0, 0))
+    else:
+        wk = np.where(finite, w[:, None, None], 0.0)
+        wsum = wk.sum(axis=0)
+        num = np.einsum("kyx,kyx->yx", wk, np.where(finite, stamps, 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         stacked = np.where(wsum > 0, num / wsum, np.nan)
     return stacked, wsum

@@ -16,7 +16,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "flux and number at random positions into the residual data and stack, R "
                     "times, all in one pass over the data), random (stack R sets of random "
                     "empty positions) or bootstrap (resample the targets).")
-    p.add_argument("data", help="(residual) visibilities, xstack store (.zarr)")
+    p.add_argument("data", help="(residual) visibilities, xstack store (.zarr); or a residual "
+                                "image (.fits) for image-domain estimates")
     p.add_argument("catalog", help="target catalog (ra, dec [deg], optional flux [Jy], weight)")
     p.add_argument("--method", choices=("analytic", "mc", "random", "bootstrap"), default="mc")
     p.add_argument("--realizations", type=int, default=100, help="number of realisations (100)")
@@ -34,6 +35,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--uvmax", help="maximum uv distance")
     p.add_argument("--field-radius", type=float, metavar="ARCSEC",
                    help="radius around each pointing for random positions")
+    p.add_argument("--psf", help="image domain: dirty beam FITS for --method mc "
+                                 "(default: X.psf.fits beside the image)")
     p.add_argument("--png", help="histogram of the realisations (PNG)")
     p.add_argument("--profile-png", help="uv-profiles of the realisations (PNG; mc/random)")
     p.add_argument("--profile-bins", type=int, default=20)
@@ -58,11 +61,16 @@ def run(args: argparse.Namespace) -> int:
         raise XstackError("--profile-png needs --method mc or random")
     if args.realizations < 2 and args.method != "analytic":
         raise XstackError(f"need at least 2 realisations to estimate a scatter, got {args.realizations}")
+    data = Path(args.data)
+    domain = "image" if data.suffix.lower() in (".fits", ".fit", ".fts") else "uv"
+    if domain == "image" and args.profile_png:
+        raise XstackError("--profile-png needs visibilities (a .zarr store), not an image")
     res = estimate_noise(
-        Path(args.data), args.catalog, method=args.method, realizations=args.realizations,
+        data, args.catalog, domain=domain, psf=args.psf, method=args.method, realizations=args.realizations,
         flux=args.flux, min_separation_arcsec=args.min_separation, avoid=args.avoid,
         seed=args.seed, weighting=args.weighting,
-        primary_beam=None if args.primary_beam == "auto" else args.primary_beam,
+        primary_beam=(("auto" if domain == "image" else None) if args.primary_beam == "auto"
+                      else args.primary_beam),
         pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
         field_radius_arcsec=args.field_radius,
         profile_bins=args.profile_bins if args.profile_png else 0,

@@ -192,13 +192,14 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                    weighting: str = "pb", primary_beam: str | PrimaryBeam | None = None,
                    pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None,
                    field_radius_arcsec: float | None = None, profile_bins: int = 0,
-                   progress: bool = False) -> NoiseResult:
+                   psf: Any = None, progress: bool = False) -> NoiseResult:
     """Estimate the noise and bias of the uv-stacked flux at ``positions``.
 
     Parameters
     ----------
     data
-        The (residual) visibilities: store path, DataTree, Dataset or dict of Datasets.
+        The (residual) visibilities: store path, DataTree, Dataset or dict of Datasets; for
+        ``domain="image"`` a (residual, not primary-beam corrected) FITS image.
     positions
         The targets: catalog path / astropy Table (``ra``, ``dec`` deg, optional ``flux`` Jy,
         ``weight``) or ``(ra_deg, dec_deg)`` arrays.
@@ -221,7 +222,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     seed
         Seed of the random generator (positions, bootstrap resampling).
     domain
-        ``"uv"`` (only uv-stacking is implemented by this estimator).
+        ``"uv"`` (uv-stacking, eq. 4) or ``"image"`` (mean of the nearest pixels, divided by
+        the primary beam; mc injects S A PSF, the PSF from ``psf`` or ``X.psf.fits``).
     weighting
         Position weights w_k, as in :func:`xstack.uvstack`: ``pb`` (default; A_k^2 at the
         mean frequency, inverse variance for primary-beam corrected fluxes), ``none`` (1) or
@@ -236,6 +238,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         Radius around each pointing inside which random positions are placed. Default: the
         distance of the farthest target in that pointing (at most the beam-cutoff radius), so
         random positions see the same range of primary-beam attenuation as the targets.
+    psf
+        Image domain: the dirty beam (FITS) for ``mc``.
     profile_bins
         If > 0, also return the uv-profiles of the realisations (paper Fig. 9) in this many
         bins of uv distance.
@@ -254,14 +258,21 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     """
     if method not in METHODS:
         raise XstackError(f"unknown noise method {method!r} (use {', '.join(METHODS)})")
-    if domain != "uv":
-        raise XstackError(f"domain {domain!r} is not supported by estimate_noise (use 'uv'; "
-                          "image-domain noise: stack random positions with xstack.imstack)")
+    if domain not in ("uv", "image"):
+        raise XstackError(f"unknown domain {domain!r} (use uv or image)")
     if weighting not in WEIGHTINGS:
         raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
     realizations = int(realizations)
     if method != "analytic" and realizations < 2:
         raise XstackError(f"need at least 2 realisations to estimate a scatter, got {realizations}")
+    if domain == "image":
+        from xstack.noise.image import estimate_noise_image
+
+        return estimate_noise_image(data, positions, method=method, realizations=realizations,
+                                    flux=flux, min_separation_arcsec=min_separation_arcsec,
+                                    avoid=avoid, seed=seed, weighting=weighting,
+                                    primary_beam=primary_beam, pb_cutoff=pb_cutoff,
+                                    field_radius_arcsec=field_radius_arcsec, psf=psf)
     lo, hi = parse_uv_limit(uvmin), parse_uv_limit(uvmax)
     ra_t, dec_t, cat = _positions_from(positions)
     n_t = ra_t.size

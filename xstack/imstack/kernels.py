@@ -50,6 +50,9 @@ def padded_size(size: int, margin: int) -> int:
         n += 2
 
 
+#: Stamps shifted per batch (bounds the temporary memory of the sub-pixel shifts).
+SHIFT_CHUNK = 128
+
 #: Fewest finite pixels outside the central mask for a usable local noise estimate.
 MIN_NOISE_PIXELS = 16
 
@@ -236,20 +239,24 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
     fx, fy = x - ix, y - iy
     # the source sits at +f from the centre: move it by -f onto the centre pixel
     dx, dy = -fx, -fy
-    out = np.empty_like(padded)
-    finite = np.isfinite(padded).all(axis=(1, 2))
-    if subpixel == "fourier":
-        if finite.any():
-            out[finite] = fourier_shift(padded[finite], dy[finite], dx[finite])
-        for k in np.flatnonzero(~finite):
-            out[k] = _guarded(padded[k], lambda a, k=k: fourier_shift(a[None], dy[k:k + 1],
-                                                                       dx[k:k + 1])[0])
-    else:
-        out[:] = spline_shift(padded, dy, dx)
-    # a pixel whose nearest-pixel source value is off the image stays NaN whatever the method
-    out[~np.isfinite(padded)] = np.nan
-    crop = out[:, margin:margin + size, margin:margin + size]
-    return np.ascontiguousarray(crop), fx, fy
+    result = np.empty((x.size, size, size))
+    for s in range(0, x.size, SHIFT_CHUNK):  # chunks bound the temporaries' memory
+        sl = slice(s, s + SHIFT_CHUNK)
+        pad, sy, sx = padded[sl], dy[sl], dx[sl]
+        if subpixel == "fourier":
+            out = np.empty_like(pad)
+            finite = np.isfinite(pad).all(axis=(1, 2))
+            if finite.any():
+                out[finite] = fourier_shift(pad[finite], sy[finite], sx[finite])
+            for k in np.flatnonzero(~finite):
+                out[k] = _guarded(pad[k], lambda a, yk=sy[k:k + 1], xk=sx[k:k + 1]:
+                                  fourier_shift(a[None], yk, xk)[0])
+        else:
+            out = spline_shift(pad, sy, sx)
+        # a pixel whose nearest-pixel value is off the image stays NaN whatever the method
+        out[~np.isfinite(pad)] = np.nan
+        result[sl] = out[:, margin:margin + size, margin:margin + size]
+    return result, fx, fy
 
 
 def offsets_grid(size: int) -> np.ndarray:

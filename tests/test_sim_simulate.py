@@ -149,8 +149,8 @@ def test_noiseless_scene_draws_no_random_numbers_and_no_w_term():
     assert "gaussian" not in steps and "attenuation" not in steps and steps["phase"] > 0
 
 
-@pytest.mark.parametrize("chunk", [1, 2, 5])
-def test_same_seed_same_bits_whatever_the_chunking(chunk):
+@pytest.mark.parametrize("chunk, bl_chunk", [(1, 0), (2, 100), (5, 37)])
+def test_same_seed_same_bits_whatever_the_chunking(chunk, bl_chunk):
     pops = [{"name": "r", "count": 20, "flux": {"kind": "power_law", "index": -2.0,
                                                  "s_min": 1e-4, "s_max": 1e-2},
              "positions": {"kind": "disc", "radius_arcsec": 15.0}}]
@@ -158,9 +158,10 @@ def test_same_seed_same_bits_whatever_the_chunking(chunk):
            "primary_beam": "standard"}
     ref = _first(simulate_partitions(_scene(pops, effects=eff), seed=5)[0]).compute(
         scheduler="synchronous")
-    other = _scene(pops, effects=eff, time_chunk=chunk)
+    other = _scene(pops, effects=eff, time_chunk=chunk, baseline_chunk=bl_chunk)
     ds = _first(simulate_partitions(other, seed=5)[0])
-    assert ds.VISIBILITY.data.npartitions == math.ceil(5 / chunk)
+    nb = math.ceil(496 / bl_chunk) if bl_chunk else 1
+    assert ds.VISIBILITY.data.npartitions == math.ceil(5 / chunk) * nb
     with dask.config.set(scheduler="threads", num_workers=2):
         got = ds.compute()
     for var in ("VISIBILITY", "FLAG", "WEIGHT", "UVW"):

@@ -204,6 +204,7 @@ class Scene:
     description: str = ""
     visibility_dtype: str = "complex64"
     time_chunk: int = 0  # integrations per chunk; 0 = automatic
+    baseline_chunk: int = 0  # baselines per chunk; 0 = all
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON/TOML-able dictionary (``load_scene(scene.to_dict())`` round-trips)."""
@@ -441,6 +442,8 @@ def validate_scene(scene: Scene) -> Scene:
         raise XstackError("visibility_dtype: complex64 or complex128")
     if scene.time_chunk < 0:
         raise XstackError("time_chunk: must be >= 0")
+    if scene.baseline_chunk < 0:
+        raise XstackError("baseline_chunk: must be >= 0")
     names = [q.name for q in scene.populations]
     if len(set(names)) != len(names):
         raise XstackError("populations: names must be unique")

@@ -403,7 +403,8 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
     }
     tc = scene.time_chunk or max(1, CHUNK_BYTES // max(1, nbl * nchan * npol * dtype.itemsize))
     tc = min(tc, nt)
-    dummy = da.zeros((nt, nbl), chunks=(tc, nbl), dtype=np.int8)
+    bc = min(scene.baseline_chunk or nbl, nbl)
+    dummy = da.zeros((nt, nbl), chunks=(tc, bc), dtype=np.int8)
     vis = da.map_blocks(_vis_block, dummy, ctx=ctx, dtype=dtype, new_axis=[2, 3],
                         chunks=(dummy.chunks[0], dummy.chunks[1], (nchan,), (npol,)),
                         name=f"xstack-sim-vis-{token}-{p}", meta=np.empty((0, 0, 0, 0), dtype))
@@ -421,7 +422,7 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         w = (1.0 / plan.sigma**2).astype(np.float32)
     else:
         w = np.ones((nbl, nchan), dtype=np.float32)
-    weight = da.broadcast_to(da.from_array(w[None, :, :, None], chunks=-1),
+    weight = da.broadcast_to(da.from_array(w[None, :, :, None], chunks=(1, bc, nchan, 1)),
                              (nt, nbl, nchan, npol), chunks=vis.chunks)
     ds = new_partition(
         visibility=vis, weight=weight, flag=flag, uvw=uvw, time=times, antenna1=a1,

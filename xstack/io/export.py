@@ -42,6 +42,13 @@ def padding_mask(vis: np.ndarray, weight: np.ndarray, flag: np.ndarray) -> np.nd
     return np.all(flag, axis=axes) & np.all(weight == 0, axis=axes) & np.all(np.isnan(vis), axis=axes)
 
 
+def _load(arr: Any) -> np.ndarray:
+    """Compute one (dask) block in this thread."""
+    if hasattr(arr, "compute"):
+        return np.asarray(arr.compute(scheduler="synchronous"))
+    return np.asarray(arr)
+
+
 def _integration_time(ds: Any) -> float:
     it = ds["time"].attrs.get("integration_time")
     if it is not None and float(it) > 0:
@@ -100,8 +107,6 @@ def _fill_gaps(items: dict[int, Any], dummy: Any) -> list[Any]:
 
 def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> int:
     """Append the rows of one partition, chunk by chunk; return the number of rows written."""
-    import dask
-
     vis_da, w_da, f_da, uvw_da = ds["VISIBILITY"].data, ds["WEIGHT"].data, ds["FLAG"].data, ds["UVW"].data
     times = np.asarray(ds["time"].values, dtype=np.float64)
     interval = _integration_time(ds)
@@ -120,15 +125,13 @@ def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> i
         ts = slice(t_edges[i], t_edges[i + 1])
         for j in range(len(b_edges) - 1):
             bs = slice(b_edges[j], b_edges[j + 1])
-            todo = [vis_da[ts, bs], w_da[ts, bs], f_da[ts, bs], uvw_da[ts, bs]]
-            if centroid_da is not None:
-                todo.append(centroid_da[ts, bs])
-            if exposure_da is not None:
-                todo.append(exposure_da[ts, bs])
-            got = list(dask.compute(*todo, scheduler="threads"))
-            vis, weight, flag, uvw = (np.asarray(g) for g in got[:4])
-            centroid = np.asarray(got[4]) if centroid_da is not None else None
-            exposure = np.asarray(got[-1]) if exposure_da is not None else None
+            # one array at a time, so only one chunk is being decoded at any moment
+            vis = _load(vis_da[ts, bs])
+            weight = _load(w_da[ts, bs])
+            flag = _load(f_da[ts, bs])
+            uvw = _load(uvw_da[ts, bs])
+            centroid = _load(centroid_da[ts, bs]) if centroid_da is not None else None
+            exposure = _load(exposure_da[ts, bs]) if exposure_da is not None else None
             ti, bi = np.nonzero(~padding_mask(vis, weight, flag))
             n = ti.size
             if bar is not None:
@@ -165,7 +168,7 @@ def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> i
                 tab.putcol("FLAG_ROW", np.all(fl, axis=(1, 2)), startrow=rk, nrow=m)
                 ws = weight[tk, bk]
                 tab.putcol("WEIGHT_SPECTRUM", ws, startrow=rk, nrow=m)
-                wrow = np.median(ws, axis=1).astype(np.float32)
+                wrow = ws.mean(axis=1, dtype=np.float64).astype(np.float32)
                 tab.putcol("WEIGHT", wrow, startrow=rk, nrow=m)
                 with np.errstate(divide="ignore"):
                     sigma = np.where(wrow > 0, 1.0 / np.sqrt(np.maximum(wrow, 1e-30)), _FLOAT32_MAX)
@@ -202,7 +205,7 @@ def export_ms(
     Notes
     -----
     The main table gets DATA (VISIBILITY), FLAG, FLAG_ROW (all channels and polarizations
-    flagged), WEIGHT_SPECTRUM (WEIGHT), WEIGHT (its median over channels), SIGMA
+    flagged), WEIGHT_SPECTRUM (WEIGHT), WEIGHT (its mean over channels), SIGMA
     (1/sqrt(WEIGHT)), UVW, TIME, TIME_CENTROID, INTERVAL, EXPOSURE, ANTENNA1/2, FIELD_ID,
     DATA_DESC_ID and SCAN_NUMBER, with tiled storage managers for the array columns. The
     subtables ANTENNA, FEED (one row per antenna), FIELD, OBSERVATION, POLARIZATION,

@@ -281,18 +281,25 @@ def local_sigma(stamps: np.ndarray, mask: np.ndarray, min_pixels: int = MIN_NOIS
 
     Returns NaN for stamps with fewer than ``min_pixels`` usable pixels (ddof = 1).
     """
-    stamps = np.asarray(stamps, dtype=np.float64)
-    outside = stamps[:, ~mask]
-    finite = np.isfinite(outside)
-    full = finite.all(axis=1)
-    sigma = np.full(stamps.shape[0], np.nan)
-    if outside.shape[1] >= max(min_pixels, 2) and full.any():
-        # the common case (stamp inside the image) without the copies of the nan-functions
-        sigma[full] = outside[full].std(axis=1, ddof=1)
-    for k in np.flatnonzero(~full):
-        vals = outside[k][finite[k]]
-        if vals.size >= max(min_pixels, 2):
-            sigma[k] = vals.std(ddof=1)
+    stamps = np.asarray(stamps)
+    n = stamps.shape[0]
+    flat = stamps.reshape(n, -1)
+    idx = np.flatnonzero(~np.asarray(mask).ravel())
+    need = max(min_pixels, 2)
+    sigma = np.full(n, np.nan)
+    if idx.size < need:
+        return sigma
+    for s in range(0, n, SHIFT_CHUNK):  # chunks bound the temporaries' memory
+        outside = flat[s:s + SHIFT_CHUNK, idx].astype(np.float64, copy=False)
+        finite = np.isfinite(outside)
+        full = finite.all(axis=1)
+        if full.all():  # the common case (stamps inside the image): no nan-function copies
+            sigma[s:s + SHIFT_CHUNK] = outside.std(axis=1, ddof=1)
+            continue
+        for k in range(outside.shape[0]):
+            vals = outside[k] if full[k] else outside[k][finite[k]]
+            if vals.size >= need:
+                sigma[s + k] = vals.std(ddof=1)
     return sigma
 
 

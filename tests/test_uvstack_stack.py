@@ -174,3 +174,42 @@ def test_uv_range_selects_visibilities():
         assert 0 < res.n_visibilities < full.n_visibilities
         assert res.n_visibilities == ref["n_visibilities"]
         assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-9)
+
+
+@pytest.mark.parametrize("spectral", [False, True])
+def test_fits_primary_beam_matches_model(tmp_path, rng, spectral):
+    """A FITS beam image sampled from the Gaussian model gives the same stack as the model."""
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    # 3 channels: the mean frequency (where the attenuation column is reported) is a plane
+    ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=13, dfreq=200e6)
+    freq = ds["frequency"].values
+    model = standard_beam("VLA", 25.0, model="gaussian")
+    npix, cell = 257, np.radians(10 / 3600)
+    w = WCS(naxis=4 if spectral else 2)
+    w.wcs.ctype = ["RA---SIN", "DEC--SIN"] + (["FREQ", "STOKES"] if spectral else [])
+    w.wcs.crval = [10.0, 40.0] + ([freq[0], 1.0] if spectral else [])
+    w.wcs.crpix = [129, 129] + ([1, 1] if spectral else [])
+    w.wcs.cdelt = [-np.degrees(cell), np.degrees(cell)] + ([freq[1] - freq[0], 1] if spectral else [])
+    w.wcs.cunit = ["deg", "deg"] + (["Hz", ""] if spectral else [])
+    y, x = np.mgrid[:npix, :npix]
+    lpix = -(x - 128) * cell
+    mpix = (y - 128) * cell
+    theta = np.arcsin(np.hypot(lpix, mpix))
+    planes = [model(theta, f) for f in (freq if spectral else freq[:1])]
+    data = np.array(planes)[None] if spectral else planes[0]
+    path = tmp_path / "pb.fits"
+    fits.PrimaryHDU(data=data.astype(np.float32), header=w.to_header()).writeto(path)
+    ra, dec = lm_to_radec(rng.uniform(-4e-3, 4e-3, 6), rng.uniform(-4e-3, 4e-3, 6), *VLA_CENTER)
+    got = uvstack(_tree(p=ds), _cat(ra, dec), primary_beam=str(path))
+    if spectral:
+        want = uvstack(_tree(p=ds), _cat(ra, dec), primary_beam="gaussian")
+    else:  # one plane at the first channel used for every channel
+        one = ds.isel(frequency=[0])
+        got = uvstack(_tree(p=one), _cat(ra, dec), primary_beam=str(path))
+        want = uvstack(_tree(p=one), _cat(ra, dec), primary_beam="gaussian")
+    att_got = np.asarray(got.positions["attenuation"])
+    att_want = np.asarray(want.positions["attenuation"])
+    np.testing.assert_allclose(att_got, att_want, rtol=2e-3, atol=1e-4)
+    assert got.flux_jy == pytest.approx(want.flux_jy, rel=5e-3, abs=1e-3 * want.flux_err_jy)

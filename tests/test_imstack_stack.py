@@ -308,3 +308,12 @@ def test_blanked_pixels_are_excluded_per_pixel(tmp_path):
     assert res.n_positions == 30 and res.skipped_rows == [1 + 6 * k for k in range(6)]
     assert res.flux_jy == pytest.approx(1.0, abs=5e-3)
     assert kernels.SPLINE_NAN_GUARD > 0
+
+
+def test_public_api_name_is_callable(fields):
+    import xstack
+
+    path, ra, dec, _, _ = fields[0.5]
+    # the package xstack.imstack is already imported here and shadows the lazy API name
+    res = xstack.imstack(path, np.c_[ra[:10], dec[:10]], stamp_size=32)
+    assert isinstance(res, xstack.imstack.ImstackResult) and res.n_positions == 10

@@ -441,8 +441,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     c = stamp_size // 2
     centre_ok = np.isfinite(stamps[:, c, c]) & (w > 0)
     # the stacked value's noise from the stamps' local noise (eq. 5 / 6)
-    sig_for_err = sigma if weighting != "pb" else np.where(np.isfinite(sigma), sigma, np.nan)
-    flux_err = kernels.weighted_error(sig_for_err[centre_ok], w[centre_ok] if method == "mean"
+    # (the median is unweighted: its error is that of the equal-weight mean times sqrt(pi/2))
+    flux_err = kernels.weighted_error(sigma[centre_ok], w[centre_ok] if method == "mean"
                                       else np.ones(int(centre_ok.sum())))
     if method == "median":
         flux_err *= kernels.MEDIAN_NOISE_FACTOR

@@ -65,3 +65,22 @@ def test_cli_preset_and_errors(tmp_path, capsys):
     capsys.readouterr()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.bright.ecsv", "p.targets.ecsv",
                                                           "p.zarr", "s.toml"]
+
+
+def test_print_scene_round_trips_every_preset(tmp_path, capsys):
+    import tomllib
+
+    from xstack.sim.presets import PRESETS, preset_scene
+    from xstack.sim.scene import load_scene
+
+    for name in PRESETS:
+        assert main(["simulate", "--preset", name, "--print-scene"]) == 0
+        text = capsys.readouterr().out
+        assert load_scene(tomllib.loads(text)) == preset_scene(name)
+    # a scaled preset written out and simulated from the file
+    assert main(["simulate", "--preset", "paper-1", "--print-scene", "--scale", "0.01"]) == 0
+    path = tmp_path / "p1.toml"
+    path.write_text(capsys.readouterr().out)
+    assert load_scene(path) == preset_scene("paper-1").scaled(0.01)
+    assert main(["simulate", str(path)]) == 1
+    assert "missing the output store" in capsys.readouterr().err

@@ -505,3 +505,44 @@ def _angle_pair(pair: list[Any], where: str) -> tuple[float, float]:
 def angle_pair(pair: list[Any], where: str = "centre") -> tuple[float, float]:
     """Public form of the (ra, dec) parser: degrees from numbers or sexagesimal strings."""
     return _angle_pair(pair, where)
+
+
+# ------------------------------------------------------------------ writing TOML
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()
+                                if not _empty(v)) + " }"
+    raise TypeError(f"cannot write {type(value).__name__} to TOML")
+
+
+def _empty(value: Any) -> bool:
+    return isinstance(value, (list, str)) and len(value) == 0
+
+
+def scene_to_toml(scene: Scene) -> str:
+    """The scene as a TOML document that :func:`load_scene` reads back to an equal scene."""
+    data = scene.to_dict()
+    lines: list[str] = []
+    tables = {k: v for k, v in data.items() if isinstance(v, Mapping)}
+    pops = data.pop("populations", [])
+    for key, value in data.items():
+        if key not in tables and not _empty(value):
+            lines.append(f"{key} = {_toml_value(value)}")
+    for key, table in tables.items():
+        lines += ["", f"[{key}]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in table.items() if not _empty(v)]
+    for pop in pops:
+        lines += ["", "[[populations]]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in pop.items() if not _empty(v)]
+    return "\n".join(lines) + "\n"

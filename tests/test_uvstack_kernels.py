@@ -121,3 +121,23 @@ def test_nufft_refuses_huge_grid(rng):
     uvw, freq, l, m, n, n1, w, ia = _random_problem(rng, scale=30000.0, field=0.05)
     with pytest.raises(MemoryError, match="numba"):
         K.stack_phasor(uvw, freq, l, m, n1, w, ia, engine="nufft")
+
+
+@pytest.mark.parametrize("dtype", [np.complex64, np.complex128])
+@pytest.mark.parametrize("with_phasor", [True, False])
+def test_compiled_sums_equal_numpy(rng, dtype, with_phasor):
+    shape = (50, 4, 4)
+    vis = (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(dtype)
+    wt = rng.uniform(0, 2, size=shape).astype(np.float32)
+    wt[0] = 0.0
+    flag = rng.uniform(size=shape) < 0.2
+    vis[flag & (rng.uniform(size=shape) < 0.5)] = np.nan
+    ph = np.exp(1j * rng.uniform(0, 6, size=shape[:2])) * rng.uniform(0.5, 1, size=shape[:2])
+    ph = ph if with_phasor else None
+    pol = np.array([True, False, False, True])
+    uvm = rng.uniform(size=shape[:2]) < 0.7
+    for kw in ({}, {"pol_mask": pol}, {"pol_mask": pol, "uv_mask": uvm}):
+        got = K.stack_sums(vis, wt, flag, ph, **kw)
+        want = K.stack_sums_numpy(vis, wt, flag, ph, **kw)
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+        assert got[4] > 0

@@ -29,6 +29,7 @@ def plot_histogram(result: Any, path: str | os.PathLike, *, overwrite: bool = Fa
     if result.values is None or len(result.values) < 2:
         raise XstackError(f"no realisations to plot for method {result.method!r}")
     scale = {"Jy": 1.0, "mJy": 1e3, "uJy": 1e6}[unit]
+    label = unit.replace("uJy", "µJy")
     plt = _figure()
     vals = np.asarray(result.values) * scale
     fig, ax = plt.subplots(figsize=(5.5, 4.0))
@@ -38,7 +39,7 @@ def plot_histogram(result: Any, path: str | os.PathLike, *, overwrite: bool = Fa
     sig = result.noise_jy * scale
     x = np.linspace(vals.min() - sig, vals.max() + sig, 400)
     ax.plot(x, np.exp(-0.5 * ((x - mu) / sig) ** 2) / (sig * np.sqrt(2 * np.pi)), "k-",
-            label=f"noise {sig:.3g} {unit}")
+            label=f"noise {sig:.3g} {label}")
     ref = 0.0
     if result.injected is not None:
         ref = float(np.mean(result.injected)) * scale
@@ -46,10 +47,10 @@ def plot_histogram(result: Any, path: str | os.PathLike, *, overwrite: bool = Fa
     if result.target_flux_jy is not None and np.isfinite(result.target_flux_jy):
         ax.axvline(result.target_flux_jy * scale, color="C3", ls=":", label="targets")
     bias = result.bias_jy * scale if result.bias_jy is not None else float("nan")
-    ax.set_xlabel(f"stacked flux density [{unit}]")
+    ax.set_xlabel(f"stacked flux density [{label}]")
     ax.set_ylabel("probability density")
     ax.set_title(f"{result.method}: R={result.realizations}, N={result.n_positions}, "
-                 f"bias {bias:.3g} {unit}", fontsize=9)
+                 f"bias {bias:.3g} {label}", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     with atomic_output(path, overwrite=overwrite) as tmp:
@@ -79,7 +80,7 @@ def plot_profiles(result: Any, path: str | os.PathLike, *, overwrite: bool = Fal
     else:
         ax.axhline(0.0, color="C0", ls="--")
     ax.set_xlabel("uv distance [kλ]")
-    ax.set_ylabel(f"stacked Re V [{unit}]")
+    ax.set_ylabel(f"stacked Re V [{unit.replace('uJy', 'µJy')}]")
     ax.set_title(f"uv-profiles of {len(vals)} {result.method} stacks", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()

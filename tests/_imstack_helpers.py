@@ -107,12 +107,12 @@ def expected_nearest(frac_x: np.ndarray, frac_y: np.ndarray, cell: float,
 
 def make_field(tmp: Path, rng: np.random.Generator, cell: float, beam=(3.2, 1.6, 0.0), n_side: int = 20,
                flux: float = 1.0, noise: float = 0.01, name: str = "img.fits", psf: bool = False,
-               spacing: int | None = None, **kw):
+               spacing: int | None = None, ra0: float = RA0, dec0: float = DEC0, **kw):
     """Image with n_side^2 sources of equal flux on a jittered grid; returns (path, ra, dec, px, py)."""
     spacing = spacing or int(np.ceil(2.2 * beam[0] / cell)) + 4
     margin = spacing
     n = 2 * margin + spacing * (n_side - 1) + 1
-    w = sin_wcs(n, cell)
+    w = sin_wcs(n, cell, ra0, dec0)
     px, py = grid_positions(n_side, spacing, margin, rng)
     img = render(n, cell, px, py, np.full(px.size, flux), beam)
     img += rng.normal(0.0, noise, img.shape)

@@ -317,3 +317,62 @@ def test_public_api_name_is_callable(fields):
     # the package xstack.imstack is already imported here and shadows the lazy API name
     res = xstack.imstack(path, np.c_[ra[:10], dec[:10]], stamp_size=32)
     assert isinstance(res, xstack.imstack.ImstackResult) and res.n_positions == 10
+
+
+@pytest.mark.parametrize("ra0,dec0", [(0.0, 10.0), (180.0, 89.98), (359.9999, -89.5)])
+def test_ra_wrap_and_poles(tmp_path, ra0, dec0):
+    rng = np.random.default_rng(14)
+    path, ra, dec, _, _ = make_field(tmp_path, rng, 0.5, beam=BEAM, n_side=6, noise=1e-3,
+                                     ra0=ra0, dec0=dec0)
+    if ra0 == 0.0:
+        assert (ra > 359).any() and (ra < 1).any()  # positions on both sides of RA = 0
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    assert res.n_positions == 36
+    assert res.flux_jy == pytest.approx(1.0, abs=5e-3)
+
+
+def test_pb_weights_from_a_pb_fits_image(fields, tmp_path):
+    path, ra, dec, px, py = fields[0.5]
+    with fits.open(path) as h:
+        hdr = h[0].header
+        ny, nx = h[0].data.shape
+    yy, xx = np.indices((ny, nx))
+    pbimg = np.exp(-((xx - nx / 2) ** 2 + (yy - ny / 2) ** 2) / (2 * (nx / 3) ** 2))
+    fits.PrimaryHDU(pbimg.astype(np.float32), header=hdr).writeto(tmp_path / "pb.fits")
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="pb", pb=tmp_path / "pb.fits")
+    a = pbimg[np.floor(py + 0.5).astype(int), np.floor(px + 0.5).astype(int)].astype(np.float32)
+    np.testing.assert_allclose(res.weights[:, 0], a.astype(np.float64) ** 2, rtol=1e-6)
+    with pytest.raises(XstackError, match="primary beam"):
+        imstack(path, np.c_[ra, dec], stamp_size=32, weighting="pb")  # no TELESCOP, no pb=
+
+
+def test_rotated_wcs_and_rotated_beam(tmp_path):
+    from _imstack_helpers import gauss_beam
+
+    rng = np.random.default_rng(15)
+    cell, n, beam = 0.5, 400, (3.2, 1.6, 20.0)
+    w = sin_wcs(n, cell)
+    rho = np.radians(30.0)  # pixel axes rotated by 30 deg
+    w.wcs.pc = [[np.cos(rho), -np.sin(rho)], [np.sin(rho), np.cos(rho)]]
+    m = w.pixel_scale_matrix * 3600.0  # pixel offsets -> (east, north) arcsec
+    base = 30 + 34 * np.arange(11, dtype=np.float64)
+    gx, gy = np.meshgrid(base, base)
+    px = gx.ravel() + rng.uniform(-0.5, 0.5, gx.size)
+    py = gy.ravel() + rng.uniform(-0.5, 0.5, gy.size)
+    yy, xx = np.indices((n, n), dtype=np.float64)
+    img = np.zeros((n, n))
+    for x0, y0 in zip(px, py):
+        sl = (slice(int(y0) - 15, int(y0) + 16), slice(int(x0) - 15, int(x0) + 16))
+        dx, dy = xx[sl] - x0, yy[sl] - y0
+        img[sl] += gauss_beam(m[0, 0] * dx + m[0, 1] * dy, m[1, 0] * dx + m[1, 1] * dy, *beam)
+    img += rng.normal(0, 1e-3, img.shape)
+    path = write_image(tmp_path / "rot.fits", img, w, beam)
+    ra, dec = w.pixel_to_world_values(px, py)
+    near = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none")
+    fx, fy = near.cube.frac_x.values, near.cube.frac_y.values
+    exact = np.mean(gauss_beam(-(m[0, 0] * fx + m[0, 1] * fy), -(m[1, 0] * fx + m[1, 1] * fy), *beam))
+    assert near.flux_jy == pytest.approx(exact, abs=5e-4)
+    assert near.pixelisation_factor == pytest.approx(exact, abs=3e-3)
+    assert near.pixel_arcsec == pytest.approx((0.5, 0.5))
+    sub = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    assert sub.flux_jy == pytest.approx(1.0, abs=3e-3)

@@ -349,10 +349,13 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
             raise XstackError(f"{info.name}: stamp size {stamp_size} is larger than the image "
                               f"({nx} x {ny} pixels)")
     pixm = _check_grids(infos)
-    # signed arcsec per pixel along x and y (x: the longitude axis)
-    sx, sy = pixm[0, 0] * 3600.0, pixm[1, 1] * 3600.0
-    pix_x, pix_y = float(np.hypot(pixm[0, 0], pixm[1, 0]) * 3600), float(np.hypot(pixm[0, 1],
-                                                                                   pixm[1, 1]) * 3600)
+    # pixel sizes (arcsec) along the image x and y axes, signed like CDELT1/CDELT2 (for a
+    # rotated image the stamp axes stay the pixel axes); rho = angle of the y axis east of north
+    pix_x = float(np.hypot(pixm[0, 0], pixm[1, 0]) * 3600)
+    pix_y = float(np.hypot(pixm[0, 1], pixm[1, 1]) * 3600)
+    sx = pix_x * (-1.0 if pixm[0, 0] < 0 else 1.0)
+    sy = pix_y * (-1.0 if pixm[1, 1] < 0 else 1.0)
+    rho = float(np.degrees(np.arctan2(pixm[0, 1], pixm[1, 1])))
     beam = next((i.beam_arcsec for i in infos if i.beam_arcsec), None)
     pbs = _as_list(pb, len(infos), "pb")
     psfs = _as_list(psf, len(infos), "psf")
@@ -464,7 +467,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     peak = float(np.nanmax(inner)) if np.isfinite(inner).any() else float("nan")
     pixfac = None
     if beam and not subpixel:
-        pixfac = kernels.pixelisation_factor(beam[0], beam[1], beam[2], pix_x, pix_y)
+        pixfac = kernels.pixelisation_factor(beam[0], beam[1], beam[2] - rho, pix_x, pix_y)
 
     # ---- xarray objects ---------------------------------------------------------------------
     off = kernels.offsets_grid(stamp_size)

@@ -103,3 +103,13 @@ def test_uv_profile_of_gaussian_source():
     ok = prof["count"] > 20
     assert np.all(np.abs(prof["re_jy"][ok] - want[ok]) < 0.05)
     assert np.all(np.diff(prof["re_jy"][ok]) < 0)
+
+
+def test_top_level_api_callable_after_subpackage_import(store):
+    import xstack
+    import xstack.uvstack.stack  # noqa: F401  (shadows the lazy function by the sub-package)
+
+    data, cat = store
+    res = xstack.uvstack(str(data), str(cat), primary_beam="none")
+    assert res.flux_jy == pytest.approx(0.05, abs=5 * res.flux_err_jy)
+    assert xstack.uv_profile(res, bins=3)["count"].sum() == res.n_visibilities

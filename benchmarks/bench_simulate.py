@@ -152,11 +152,20 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="small sizes only")
     ap.add_argument("--full-type6", action="store_true", help="also simulate full-size type 6")
     ap.add_argument("--type6-scale", type=float, default=1.0)
+    ap.add_argument("--only-type6", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.only_type6:
+        full_type6(args.type6_scale)
+        return
     print(f"# bench_simulate ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())})")
     kernel_table(args.quick)
     if args.full_type6:
-        full_type6(args.type6_scale)
+        # a fresh process, so that peak RSS is the simulation's own
+        import subprocess
+
+        sys.stdout.flush()
+        subprocess.run([sys.executable, __file__, "--only-type6", "--type6-scale",
+                        str(args.type6_scale)], check=True)
 
 
 if __name__ == "__main__":

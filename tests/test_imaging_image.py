@@ -173,3 +173,37 @@ def test_mosaic_and_bad_input_errors(tmp_path):
     flagged = a.assign(FLAG=(a.FLAG.dims, np.ones(a.FLAG.shape, bool)))
     with pytest.raises(XstackError, match="no unflagged"):
         make_image(flagged, size=32, cell_arcsec=1.0)
+
+
+def test_mfs_over_spectral_windows_is_weighted_combination(tmp_path):
+    src = offset_position(30.0, 20.0)
+    a = make_sky_partition([(src[0], src[1], 1.0)], n_time=4, n_ant=8, freq0=1.3e9, noise=0.2)
+    b = make_sky_partition([(src[0], src[1], 1.0)], n_time=4, n_ant=8, freq0=1.6e9, noise=0.4,
+                           seed=5)
+    b = b.assign_attrs(spectral_window_id=1)
+    write_store({"spw0_field0": a, "spw1_field0": b}, tmp_path / "s.zarr")
+    both = make_image(tmp_path / "s.zarr", size=64, cell_arcsec=3.0)
+    ra = make_image(a, size=64, cell_arcsec=3.0)
+    rb = make_image(b, size=64, cell_arcsec=3.0)
+    expect = (ra.sum_weights * ra.image + rb.sum_weights * rb.image) / (ra.sum_weights + rb.sum_weights)
+    assert np.allclose(both.image, expect, atol=1e-6)
+    assert both.sum_weights == pytest.approx(ra.sum_weights + rb.sum_weights)
+    assert ra.frequency < both.frequency < rb.frequency
+
+
+def test_off_pixel_source_within_pixelisation_loss():
+    """A source half a pixel off in RA and Dec peaks at the Gaussian-beam value of the offset."""
+    cell = 3.0
+    src = offset_position(-(10 + 0.5) * cell, (4 + 0.5) * cell)
+    ds = make_sky_partition([(src[0], src[1], 1.0)], n_time=16, n_ant=10)
+    res = make_image(ds, size=64, cell_arcsec=cell)
+    y, x = np.unravel_index(np.argmax(res.image), res.image.shape)
+    assert x - 32 in (10, 11) and y - 32 in (4, 5)  # west = right, north = up
+    from xstack.imaging.kernels import gaussian_image
+
+    bmaj, bmin, bpa = res.beam
+    g = gaussian_image(64, 64, bmaj / cell, bmin / cell, bpa, centre=(32 + 4.5, 32 + 10.5))
+    expected = g[y, x]
+    assert 0.8 < expected < 0.99
+    assert res.image[y, x] == pytest.approx(expected, abs=0.02)
+    assert res.image[y, x] < 1.0

@@ -376,3 +376,15 @@ def test_rotated_wcs_and_rotated_beam(tmp_path):
     assert near.pixel_arcsec == pytest.approx((0.5, 0.5))
     sub = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
     assert sub.flux_jy == pytest.approx(1.0, abs=3e-3)
+
+
+@pytest.mark.parametrize("size", [31, 33, 48])
+def test_odd_and_even_stamp_sizes_centre_the_source(fields, size):
+    path, ra, dec, _, _ = fields[0.5]
+    c = size // 2
+    for sub in (False, "fourier", "spline"):
+        res = imstack(path, np.c_[ra[:100], dec[:100]], stamp_size=size, weighting="none", subpixel=sub)
+        assert res.stacked.shape == (size, size)
+        assert np.unravel_index(np.nanargmax(res.stacked.values), res.stacked.shape) == (c, c)
+        assert float(res.stacked.x[c]) == 0.0 and float(res.stacked.y[c]) == 0.0
+        assert res.flux_jy == pytest.approx(float(res.psf_stamp.values[c, c]), abs=4e-3)

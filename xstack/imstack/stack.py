@@ -473,9 +473,9 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     off = kernels.offsets_grid(stamp_size)
     # x = offset along the image x axis as Delta(RA) cos(dec) (east positive; it decreases with
     # the pixel index for the usual CDELT1 < 0), y = offset north
-    xcoord = xr.Variable("x", off * sx, attrs={"units": "arcsec",
+    xcoord = xr.Variable("x", off * sx + 0.0, attrs={"units": "arcsec",
                          "long_name": "offset east (Delta RA cos Dec) along the image x axis"})
-    ycoord = xr.Variable("y", off * sy, attrs={"units": "arcsec",
+    ycoord = xr.Variable("y", off * sy + 0.0, attrs={"units": "arcsec",
                          "long_name": "offset north along the image y axis"})
     bunit = infos[0].bunit or "Jy/beam"
     cube = xr.DataArray(

@@ -278,20 +278,36 @@ def _block_phasor(uvw_block, params, frequency, engine):
     return ph.reshape(nt, nb, len(frequency))
 
 
+#: Rows per phasor evaluation inside a chunk: bounds the phasor temporaries to ~20 MB
+_ROWS_PER_STEP = 65536
+
+
 def _block_stack_vis(vis, uvw, params, frequency, engine):
-    ph = _block_phasor(uvw, params, frequency, engine)
-    out = vis * ph[..., None]
-    # NaN under flags stays NaN (flagged); the output keeps the input precision
-    return out.astype(vis.dtype, copy=False)
+    nt, nb, nc, npol = vis.shape
+    out = np.empty(vis.shape, dtype=vis.dtype)
+    flat_vis = vis.reshape(nt * nb, nc, npol)
+    flat_out = out.reshape(nt * nb, nc, npol)
+    flat_uvw = uvw.reshape(nt * nb, 1, 3)
+    for start in range(0, nt * nb, _ROWS_PER_STEP):
+        sl = slice(start, start + _ROWS_PER_STEP)
+        ph = _block_phasor(flat_uvw[sl], params, frequency, engine)[:, 0]
+        # NaN under flags stays NaN (flagged); the output keeps the input precision
+        flat_out[sl] = flat_vis[sl] * ph[..., None]
+    return out
 
 
 def _block_sums(vis, weight, flag, uvw, params, frequency, engine, pol_mask, lo, hi):
     nt, nb, nc, npol = vis.shape
-    ph = _block_phasor(uvw, params, frequency, engine).reshape(nt * nb, nc)
-    mask = uv_mask(uvw.reshape(nt * nb, 3), frequency, lo, hi)
-    s = kernels.stack_sums(vis.reshape(nt * nb, nc, npol), weight.reshape(nt * nb, nc, npol),
-                           flag.reshape(nt * nb, nc, npol), ph, pol_mask, mask)
-    return s[None, None, :]
+    n = nt * nb
+    vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
+    uvw = uvw.reshape(n, 1, 3)
+    total = np.zeros(5)
+    for start in range(0, n, _ROWS_PER_STEP):
+        sl = slice(start, start + _ROWS_PER_STEP)
+        ph = _block_phasor(uvw[sl], params, frequency, engine)[:, 0]
+        mask = uv_mask(uvw[sl, 0], frequency, lo, hi)
+        total += kernels.stack_sums(vis[sl], weight[sl], flag[sl], ph, pol_mask, mask)
+    return total[None, None, :]
 
 
 # --- planning -----------------------------------------------------------------------------

@@ -83,5 +83,8 @@ def test_fits_input_and_bad_input(tmp_path, sim):
         fit_image(nopsf)
     with pytest.raises(XstackError, match="pixel_arcsec"):
         fit_image(img, psf=sim.psf)
+    with pytest.raises(XstackError, match="not positive"):
+        fit_image(-img, psf=sim.psf, pixel_arcsec=0.5)
+    assert fit_image(-img, psf=sim.psf, pixel_arcsec=0.5, model="point").flux_jy < 0
     with pytest.raises(XstackError, match="usable pixels"):
         fit_image(img, psf=sim.psf, pixel_arcsec=0.5, fit_radius_arcsec=0.1)

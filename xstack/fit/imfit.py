@@ -305,6 +305,10 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
                        dof=int(round(dof_eff)), chi2_reduced=rss / sigma2 / max(dof_eff, 1),
                        error_scale=1.0, n_data=npix, extra=extra)
     if model == "gaussian":
+        if not S > 0:
+            raise XstackError(f"gaussian fit ill-conditioned: fitted flux {S:.3g} Jy is not "
+                              f"positive (error {np.sqrt(cov[0, 0]):.3g} Jy), so the size is "
+                              "undefined; use the point model")
         sig_a = float(np.sqrt(cov[1, 1]))
         theta, theta_err = theta_and_error(a_hat, sig_a)
         result.fwhm_arcsec = theta

@@ -250,6 +250,10 @@ def test_outputs_layout_and_roundtrip(fields, tmp_path):
         assert hdul[0].data.shape == (400, 32, 32)
         assert hdul["STAMPS"].data["position"][0] == 1
     assert res2.flux_jy < res.flux_jy  # nearest pixel loses the pixelisation factor
+    with fits.open(out) as hdul:
+        ph = hdul["PSF"].header
+        assert ph["PSFSMEAR"] and ph["PSFPEAK"] == pytest.approx(hdul["PSF"].data[16, 16])
+        assert ph["PSFPEAK"] < 0.99
 
 
 def _no_celestial(tmp_path):

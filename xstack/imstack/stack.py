@@ -616,6 +616,11 @@ def _write_outputs(result: ImstackResult, paths: dict[str, Path], pixm: np.ndarr
             ph.remove(key, ignore_missing=True)
         ph["EXTNAME"] = "PSF"
         ph["PSFSMEAR"] = (not result.subpixel, "includes the nearest-pixel smear of the stack")
+        c = size // 2
+        ph["PSFPEAK"] = (float(result.psf_stamp.values[c, c]), "centre value: keep, do not renormalise")
+        ph["HISTORY"] = "PSF of the stack: mean of the dirty beam displaced by every position's"
+        ph["HISTORY"] = "sub-pixel offset (PSFSMEAR = T). Its centre value PSFPEAK < 1 is the"
+        ph["HISTORY"] = "pixelisation loss; fitting with it unnormalised gives the true flux."
         hdus.append(fits.ImageHDU(result.psf_stamp.values.astype(np.float64), header=ph, name="PSF"))
     wh = fits.Header()
     wh["EXTNAME"] = "WEIGHTS"

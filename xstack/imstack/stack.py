@@ -359,6 +359,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     beam = next((i.beam_arcsec for i in infos if i.beam_arcsec), None)
     pbs = _as_list(pb, len(infos), "pb")
     psfs = _as_list(psf, len(infos), "psf")
+    fmask = _filter_mask(filter_lowfreq, stamp_size, pix_x, pix_y, infos[0].frequency_hz)
 
     # ---- which positions each image sees ----------------------------------------------------
     n_pos = ra.size
@@ -454,7 +455,6 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     psf_stack = _psf_stack(infos, psfs, stamp_size, img_idx, frac_x, frac_y, w, subpixel)
 
     # ---- low-spatial-frequency filter (paper §5.3) ------------------------------------------
-    fmask = _filter_mask(filter_lowfreq, stamp_size, pix_x, pix_y, infos[0].frequency_hz)
     if fmask is not None:
         stacked = kernels.lowfreq_filter(stacked, fmask)
         if psf_stack is not None:

@@ -33,7 +33,7 @@ def test_stack_of_an_xstack_dirty_image_with_its_psf(tmp_path):
     uvw = ds["UVW"].values  # (time, baseline, 3)
     lam = SPEED_OF_LIGHT / ds["frequency"].values
     # one image per source: no confusion between them, three stamps for the stack
-    paths = []
+    paths, results = [], []
     for k in range(len(offsets)):
         phase = (uvw[..., 0, None] * l[k] + uvw[..., 1, None] * m[k]
                  + uvw[..., 2, None] * nm1[k]) / lam
@@ -45,6 +45,7 @@ def test_stack_of_an_xstack_dirty_image_with_its_psf(tmp_path):
         res.write(p)
         res.write(tmp_path / f"src{k}.psf.fits", res.psf, kind="psf")
         paths.append(p)
+        results.append(res)
     pos = np.c_[ra, dec]
     for k, path in enumerate(paths):
         out = tmp_path / f"near{k}.fits"
@@ -57,3 +58,7 @@ def test_stack_of_an_xstack_dirty_image_with_its_psf(tmp_path):
         fourier = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", subpixel="fourier")
         assert fourier.flux_jy == pytest.approx(1.0, abs=5e-3)
         assert fourier.beam_arcsec == pytest.approx(first.beam, rel=1e-6)
+        # the in-memory ImageResult (image, header, psf) stacks like its FITS files
+        mem = imstack(results[k], pos[k:k + 1], stamp_size=48, weighting="none")
+        np.testing.assert_allclose(mem.stacked.values, near.stacked.values, rtol=1e-6)
+        np.testing.assert_allclose(mem.psf_stamp.values, near.psf_stamp.values, atol=1e-6)

@@ -152,14 +152,16 @@ def image_from_hdu(hdu: fits.ImageHDU | fits.PrimaryHDU, name: str, path: Path |
                      bunit=str(header.get("BUNIT", "")).strip(), path=path)
 
 
-def read_image(source: str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo,
+def read_image(source: str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo | Any,
                name: str | None = None) -> ImageInfo:
     """Read one image plane for stacking.
 
     Parameters
     ----------
     source
-        A FITS file path, an astropy image HDU, or an :class:`ImageInfo` (returned as is).
+        A FITS file path, an astropy image HDU, an in-memory image with ``image`` and
+        ``header`` (and optionally ``psf``) attributes such as
+        :class:`xstack.imaging.image.ImageResult`, or an :class:`ImageInfo` (returned as is).
     name
         Label for messages (default: the file name).
 
@@ -173,6 +175,19 @@ def read_image(source: str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | Ima
         return source
     if isinstance(source, (fits.ImageHDU, fits.PrimaryHDU)):
         return image_from_hdu(source, name or "image")
+    if hasattr(source, "image") and isinstance(getattr(source, "header", None), fits.Header):
+        # an in-memory image such as xstack.imaging's ImageResult (image, header[, psf])
+        header = source.header
+        data = np.asarray(source.image)
+        naxis = int(header.get("NAXIS", data.ndim))
+        data = data.reshape((1,) * max(naxis - data.ndim, 0) + data.shape)
+        info = image_from_hdu(fits.PrimaryHDU(data, header=header), name or "image")
+        psf = getattr(source, "psf", None)
+        if psf is not None:
+            psf = np.asarray(psf)
+            psf = psf.reshape((1,) * max(naxis - 2, 0) + psf.shape[-2:])
+            info.extra["psf"] = fits.PrimaryHDU(psf, header=header)
+        return info
     path = Path(source)
     label = name or str(path)
     if not path.exists():

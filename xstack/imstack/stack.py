@@ -247,8 +247,9 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     Parameters
     ----------
     images
-        One image or a sequence (e.g. mosaic pointings): FITS paths, astropy image HDUs or
-        :class:`~xstack.imstack.io.ImageInfo`. Any celestial WCS; degenerate Stokes/frequency
+        One image or a sequence (e.g. mosaic pointings): FITS paths, astropy image HDUs,
+        in-memory images (:class:`xstack.imaging.image.ImageResult`: image, header and PSF)
+        or :class:`~xstack.imstack.io.ImageInfo`. Any celestial WCS; degenerate Stokes/frequency
         axes are dropped. All images must share cell size and orientation.
     positions
         Catalog path or :class:`~astropy.table.Table` (columns ``ra``, ``dec`` in degrees,
@@ -336,7 +337,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     ra, dec, cat_w = _positions(positions)
     if weighting == "column" and cat_w is None:
         raise XstackError("weighting 'column' needs a catalog with a weight column")
-    if isinstance(images, (str, os.PathLike, fits.ImageHDU, fits.PrimaryHDU, ImageInfo)):
+    if isinstance(images, (str, os.PathLike, fits.ImageHDU, fits.PrimaryHDU, ImageInfo)) or (
+            hasattr(images, "image") and hasattr(images, "header")):
         images = [images]
     images = list(images)
     if not images:
@@ -516,6 +518,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
 
 def _psf_stamp_for(info: ImageInfo, psf: Any, stamp_size: int) -> np.ndarray | None:
     """A finite PSF stamp with margin (odd size) centred on the PSF peak, or None."""
+    if psf is None and "psf" in info.extra:
+        psf = info.extra["psf"]
     if psf is None:
         if info.path is None:
             return None

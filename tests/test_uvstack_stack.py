@@ -159,6 +159,9 @@ def test_bad_options():
                         ({"primary_beam": "square"}, "primary beam"),
                         ({"weighting": "column"}, "weight"), ({"uvmin": "3parsec"}, "unit"),
                         ({"pb_cutoff": 1.5}, "pb_cutoff"),
+                        ({"weighting": "sigma2", "sigma": [1.0, 2.0]}, "one per position"),
+                        ({"weighting": "sigma2", "sigma": -1.0}, "positive"),
+                        ({"uvmin": "5km", "uvmax": "1km"}, "smaller"),
                         ({"primary_beam": "/nonexistent/pb.fits"}, "no such")]:
         with pytest.raises(XstackError, match=msg):
             uvstack(_tree(p=ds), cat, **kwargs)

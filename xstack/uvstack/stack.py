@@ -505,7 +505,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     sig = None
     if weighting == "sigma2":
         if sigma is not None:
-            sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (npos,)).copy()
+            try:
+                sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (npos,)).copy()
+            except (TypeError, ValueError):
+                raise XstackError(f"sigma must be one number or one per position ({npos})") from None
         elif "sigma" in table.colnames:
             sig = np.asarray(table["sigma"], dtype=np.float64)
         if sig is not None and not np.all(np.isfinite(sig) & (sig > 0)):

@@ -25,6 +25,9 @@ from xstack.schema import iter_partitions, open_store
 #: Bytes of visibilities handed to casacore per ``putcol`` call.
 WRITE_BATCH_BYTES = 32 * 1024**2
 
+#: Upper limit of casacore's tile cache per column while writing.
+TILE_CACHE_BYTES = 16 * 1024**2
+
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
@@ -137,6 +140,7 @@ def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> i
             if bar is not None:
                 bar.update(1)
             if n == 0:
+                del vis, weight, flag, uvw, centroid, exposure
                 continue
             r0 = tab.nrows()
             tab.addrows(n)
@@ -174,6 +178,8 @@ def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> i
                     sigma = np.where(wrow > 0, 1.0 / np.sqrt(np.maximum(wrow, 1e-30)), _FLOAT32_MAX)
                 tab.putcol("SIGMA", sigma.astype(np.float32), startrow=rk, nrow=m)
             written += n
+            # free this chunk before the next one is decoded (halves the peak memory)
+            del vis, weight, flag, uvw, centroid, exposure, fl, ws, wrow, sigma
     return written
 
 
@@ -244,6 +250,9 @@ def export_ms(
     with atomic_output(out_ms, overwrite=overwrite) as tmp:
         tab = create_ms(tmp, shapes, data_columns=("DATA",), complex128=complex128,
                         weight_spectrum=True)
+        # casacore's tile caches otherwise grow with the number of rows written
+        for col in ("DATA", "FLAG", "WEIGHT_SPECTRUM", "WEIGHT", "SIGMA", "UVW"):
+            tab.setmaxcachesize(col, TILE_CACHE_BYTES)
         bar = progress_iter(range(n_blocks), f"export {Path(out_ms).name}", enabled=progress) \
             if progress else None
         try:

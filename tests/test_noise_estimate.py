@@ -197,3 +197,21 @@ def test_target_flux_matches_uvstack_on_a_mosaic(weighting):
         assert res.target_flux_jy == pytest.approx(ref.flux_jy, rel=1e-9), method
     ana = estimate_noise(parts, pos, method="analytic", weighting=weighting)
     assert ana.extra["estimator_noise_jy"] == pytest.approx(ref.flux_err_jy, rel=0.3)
+
+
+def test_random_positions_avoid_bright_sources_and_stay_in_field():
+    ds, _, _ = noise_field(0, n_ant=6, n_time=4, extent_m=20e3)
+    ra, dec = _targets(n=10)
+    bright = _targets(n=15, seed=9)
+    res = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="random", realizations=10,
+                         avoid=(np.degrees(bright[0]), np.degrees(bright[1])),
+                         min_separation_arcsec=45.0, weighting="none")
+    pra, pdec = np.radians(res.positions_deg[..., 0]).ravel(), np.radians(res.positions_deg[..., 1]).ravel()
+    sep_b = angular_separation(pra[:, None], pdec[:, None], bright[0][None], bright[1][None])
+    assert sep_b.min() >= np.radians(45 / 3600) * 0.999
+    # inside the disc of the farthest target
+    rmax = angular_separation(ra, dec, *CENTRE).max() * 1.02
+    assert angular_separation(pra, pdec, *CENTRE).max() <= rmax * (1 + 1e-9)
+    # roughly uniform in area: half of the positions inside 1/sqrt(2) of the radius
+    frac = np.mean(angular_separation(pra, pdec, *CENTRE) < rmax / np.sqrt(2))
+    assert 0.35 < frac < 0.65

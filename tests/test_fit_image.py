@@ -77,6 +77,17 @@ def test_fits_input_and_bad_input(tmp_path, sim):
     b = fit_image(img, psf=sim.psf, pixel_arcsec=0.5)
     assert a.flux_jy == pytest.approx(b.flux_jy, rel=1e-10)
     assert a.fwhm_arcsec == pytest.approx(b.fwhm_arcsec, rel=1e-8)
+    # an imstack PSF with nearest-pixel smear (PSFSMEAR, peak < 1) is used as it is
+    sim0 = StampSimulator(sigma=0.0)
+    smear = 0.9 * sim0.psf
+    ph = fits.Header({"PSFSMEAR": True, "PSFPEAK": 0.9})
+    spath = tmp_path / "smeared.fits"
+    fits.HDUList([fits.PrimaryHDU(0.9 * sim0.stamp(1.0, 0.0, 0), header=hdr),
+                  fits.ImageHDU(smear, header=ph, name="PSF")]).writeto(spath)
+    s = fit_image(spath, model="point", sigma_jy=1e-3)
+    assert s.flux_jy == pytest.approx(1.0, rel=1e-6) and not s.extra["psf_normalised"]
+    s2 = fit_image(spath, model="point", sigma_jy=1e-3, normalise_psf=True)
+    assert s2.flux_jy == pytest.approx(0.9, rel=1e-6)
     nopsf = tmp_path / "nopsf.fits"
     fits.PrimaryHDU(img, header=hdr).writeto(nopsf)
     with pytest.raises(XstackError, match="no PSF"):

@@ -51,6 +51,7 @@ def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
             header = hdul[0].header.copy()
             stamp = np.asarray(hdul[0].data, dtype=np.float64)
             psf = np.asarray(hdul["PSF"].data, dtype=np.float64) if "PSF" in hdul else None
+            smeared = bool(hdul["PSF"].header.get("PSFSMEAR", False)) if "PSF" in hdul else False
     except (OSError, ValueError) as exc:
         raise XstackError(f"{path}: cannot read as FITS ({exc})") from None
     stamp = np.squeeze(stamp)
@@ -61,10 +62,13 @@ def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
     centre = (int(round(header.get("CRPIX2", stamp.shape[0] // 2 + 1))) - 1,
               int(round(header.get("CRPIX1", stamp.shape[1] // 2 + 1))) - 1)
     return {"stamp": stamp, "psf": None if psf is None else np.squeeze(psf),
+            "psf_smeared": smeared,
             "pixel_arcsec": (float(scales[0]), float(scales[1])), "centre": centre}
 
 
-def _read_psf(psf: Any) -> np.ndarray:
+def _read_psf(psf: Any, with_flag: bool = False) -> Any:
+    """The PSF array (and whether it is an imstack PSF with pixelisation smear)."""
+    smeared = False
     if isinstance(psf, (str, os.PathLike)):
         from astropy.io import fits
 
@@ -73,22 +77,27 @@ def _read_psf(psf: Any) -> np.ndarray:
             raise XstackError(f"{p}: no such PSF file")
         with fits.open(p) as hdul:
             hdu = hdul["PSF"] if "PSF" in hdul else hdul[0]
-            return np.squeeze(np.asarray(hdu.data, dtype=np.float64))
-    return np.asarray(psf, dtype=np.float64)
+            smeared = bool(hdu.header.get("PSFSMEAR", False))
+            arr = np.squeeze(np.asarray(hdu.data, dtype=np.float64))
+    else:
+        arr = np.asarray(psf, dtype=np.float64)
+    return (arr, smeared) if with_flag else arr
 
 
 class _Convolver:
     """Convolutions with the PSF on a padded grid aligned with the stamp."""
 
     def __init__(self, psf: np.ndarray, shape: tuple[int, int], centre: tuple[int, int],
-                 pixel_arcsec: tuple[float, float]):
+                 pixel_arcsec: tuple[float, float], normalise: bool = True):
         if psf.ndim != 2 or not np.all(np.isfinite(psf)):
             raise XstackError("the PSF must be a finite 2-D image")
         peak = np.unravel_index(np.argmax(psf), psf.shape)
         pmax = psf[peak]
         if not pmax > 0:
             raise XstackError("the PSF has no positive peak")
-        psf = psf / pmax
+        self.peak = float(pmax)
+        if normalise:
+            psf = psf / pmax
         ny, nx = shape
         # padded FFT grid: the PSF wholly, plus the stamp, without wrap-around
         Ny = int(2 ** np.ceil(np.log2(psf.shape[0] + ny)))
@@ -129,7 +138,8 @@ class _Convolver:
 def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float, float] | None = None,
               centre: tuple[int, int] | None = None, model: str = "gaussian",
               fit_radius_arcsec: float | None = None, background: bool = True,
-              noise_correlation: str = "psf", sigma_jy: float | None = None) -> FitResult:
+              noise_correlation: str = "psf", sigma_jy: float | None = None,
+              normalise_psf: bool | None = None) -> FitResult:
     """Fit a circular Gaussian convolved with the dirty beam (plus a constant) to a stamp.
 
     Parameters
@@ -155,6 +165,11 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         ``"psf"`` (default), ``"residual"`` or ``"none"``; see the module notes.
     sigma_jy
         Pixel noise rms (Jy/beam) if known; default: estimated from the residuals.
+    normalise_psf
+        Divide the PSF by its peak. Default: yes, except for a PSF written by
+        ``xstack imstack`` with nearest-pixel smear (``PSFSMEAR = T``, peak < 1), which is used
+        as it is so that S is the true mean flux (see docs/imstack.md). The noise correlation
+        always uses the PSF scaled to a peak of 1.
 
     Returns
     -------
@@ -168,6 +183,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         raise XstackError(f"unknown model {model!r} (use point or gaussian)")
     if noise_correlation not in ("psf", "residual", "none"):
         raise XstackError(f"unknown noise_correlation {noise_correlation!r} (psf, residual, none)")
+    smeared = False
     if isinstance(stamp, (str, os.PathLike)):
         info = read_stamp_fits(stamp)
         img = info["stamp"]
@@ -175,6 +191,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         centre = info["centre"] if centre is None else centre
         if psf is None:
             psf = info["psf"]
+            smeared = info["psf_smeared"]
             if psf is None:
                 raise XstackError(f"{stamp}: no PSF extension; give the dirty beam with --psf")
     else:
@@ -190,7 +207,10 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         raise XstackError(f"the stamp must be a 2-D image, got shape {img.shape}")
     ny, nx = img.shape
     centre = (ny // 2, nx // 2) if centre is None else (int(centre[0]), int(centre[1]))
-    conv = _Convolver(_read_psf(psf), img.shape, centre, pix)
+    psf_arr, smeared_file = _read_psf(psf, with_flag=True)
+    smeared = smeared or smeared_file
+    normalise = (not smeared) if normalise_psf is None else bool(normalise_psf)
+    conv = _Convolver(psf_arr, img.shape, centre, pix, normalise=normalise)
     yy, xx = np.mgrid[0:ny, 0:nx]
     r = np.hypot((yy - centre[0]) * pix[1], (xx - centre[1]) * pix[0])
     use = np.isfinite(img)
@@ -205,7 +225,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     amp_scale = max(float(np.max(np.abs(data))), 1e-30)
 
     # size parameter: alpha = theta^2 / s2 with s2 = beam area in arcsec^2 (order 1)
-    s2 = float(max(pix[0] * pix[1] * max(np.sum(psf0 > 0.5), 1), pix[0] * pix[1]))
+    s2 = float(max(pix[0] * pix[1] * max(np.sum(psf0 > 0.5 * psf0.max()), 1), pix[0] * pix[1]))
 
     def unpack(p: np.ndarray) -> tuple[float, float, float]:
         S = p[0] * amp_scale
@@ -270,10 +290,12 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         RJ = J.copy()
     else:
         RJ = np.empty_like(J)
+        # the noise correlation is the dirty beam with peak 1 (whatever the PSF's scale)
+        rho = conv.psf_ft / conv.peak if (rho_ft is None and not normalise) else rho_ft
         for i in range(J.shape[1]):
             col = np.zeros(img.shape)
             col[use] = J[:, i]
-            RJ[:, i] = conv.correlate(col, rho_ft)[use]
+            RJ[:, i] = conv.correlate(col, rho)[use]
     JRJ = J.T @ RJ
     trHR = float(np.trace(JTJ_inv @ JRJ))
     rss = float(np.sum(sol.fun**2))
@@ -294,6 +316,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
             (["background_jy_per_beam"] if background else [])
     values = [S] + ([a_hat] if model == "gaussian" else []) + ([c] if background else [])
     extra = {"noise_correlation": noise_correlation, "sigma_jy_per_beam": float(np.sqrt(sigma2)),
+             "psf_peak": conv.peak, "psf_normalised": normalise,
              "effective_dof": float(dof_eff), "condition_number": float(cond),
              "pixel_arcsec": list(pix), "centre_pixel": list(centre)}
     if background:

@@ -75,6 +75,10 @@ def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1
         dd = np.empty(nk)
         dacc = 0.0
         macc = 0.0
+        # 1-D views: indexing 2-D arrays inside the inner loops defeats vectorisation
+        lg = l[k0:k0 + nk]
+        mg = m[k0:k0 + nk]
+        ng = n1[k0:k0 + nk]
         for row in range(nrow):
             if not row_ok[row]:
                 continue
@@ -82,7 +86,7 @@ def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1
             v = uvw[row, 1]
             w = uvw[row, 2]
             for j in range(nk):
-                dd[j] = u * l[k0 + j] + v * m[k0 + j] + w * n1[k0 + j]
+                dd[j] = u * lg[j] + v * mg[j] + w * ng[j]
                 dr[j], di[j] = _cis_minus(dd[j] * step)
             for c in range(nchan):
                 if (not even) or c % reseed == 0:
@@ -92,10 +96,12 @@ def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1
                 sPi = 0.0
                 sMr = 0.0
                 sMi = 0.0
+                arow = a[c, k0:k0 + nk]
                 if with_model:
+                    brow = b[c, k0:k0 + nk]
                     for j in range(nk):
-                        ac = a[c, k0 + j]
-                        bc = b[c, k0 + j]
+                        ac = arow[j]
+                        bc = brow[j]
                         re = pr[j]
                         im = pi[j]
                         sPr += ac * re
@@ -106,7 +112,7 @@ def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1
                         pi[j] = re * di[j] + im * dr[j]
                 else:
                     for j in range(nk):
-                        ac = a[c, k0 + j]
+                        ac = arow[j]
                         re = pr[j]
                         im = pi[j]
                         sPr += ac * re
@@ -141,6 +147,9 @@ def _position_numba(uvw, fc, step, even, reseed, vw_re, vw_im, row_ok, l, m, n1,
         di = np.empty(nk)
         dd = np.empty(nk)
         xl = np.zeros(nk)
+        lg = l[k0:k0 + nk]
+        mg = m[k0:k0 + nk]
+        ng = n1[k0:k0 + nk]
         for row in range(nrow):
             if not row_ok[row]:
                 continue
@@ -148,7 +157,7 @@ def _position_numba(uvw, fc, step, even, reseed, vw_re, vw_im, row_ok, l, m, n1,
             v = uvw[row, 1]
             w = uvw[row, 2]
             for j in range(nk):
-                dd[j] = u * l[k0 + j] + v * m[k0 + j] + w * n1[k0 + j]
+                dd[j] = u * lg[j] + v * mg[j] + w * ng[j]
                 dr[j], di[j] = _cis_minus(dd[j] * step)
             for c in range(nchan):
                 if (not even) or c % reseed == 0:
@@ -156,10 +165,11 @@ def _position_numba(uvw, fc, step, even, reseed, vw_re, vw_im, row_ok, l, m, n1,
                         pr[j], pi[j] = _cis_minus(dd[j] * fc[c])
                 vr = vw_re[row, c]
                 vi = vw_im[row, c]
+                arow = a[c, k0:k0 + nk]
                 for j in range(nk):
                     re = pr[j]
                     im = pi[j]
-                    xl[j] += a[c, k0 + j] * (vr * re - vi * im)
+                    xl[j] += arow[j] * (vr * re - vi * im)
                     pr[j] = re * dr[j] - im * di[j]
                     pi[j] = re * di[j] + im * dr[j]
         for j in range(nk):

@@ -146,3 +146,28 @@ def test_bad_models_write_nothing(bright_scene, tmp_path):
         subtract(d / "data.zarr", tmp_path / "missing.fits", out)
     assert not out.exists()
     assert not any(p.name.startswith(".out.zarr") for p in tmp_path.iterdir())
+
+
+def test_catalog_subtraction_per_mosaic_pointing(tmp_path):
+    """ALMA mosaic: each pointing sees the source with its own primary-beam attenuation."""
+    src = offset_position(8.0, 4.0)
+    parts = {}
+    for field, (dx, dy) in enumerate([(0.0, 0.0), (20.0, 0.0)]):
+        centre = offset_position(dx, dy)
+        freq = 230e9 + 50e6 * np.arange(3)
+        beam = standard_beam("ALMA", 12.0)
+        att = beam(angular_separation(*centre, *src), freq)[None, :]
+        ds = make_sky_partition([(src[0], src[1], 0.03)], n_time=4, n_ant=8, freq0=230e9,
+                                chan_width=50e6, n_chan=3, telescope="ALMA", dish=12.0,
+                                max_baseline=300.0, phase_center=centre, field_id=field,
+                                attenuation=att)
+        parts[f"spw0_field{field}"] = ds
+    assert parts["spw0_field0"].attrs["phase_center"] != parts["spw0_field1"].attrs["phase_center"]
+    write_store(parts, tmp_path / "m.zarr")
+    subtract(tmp_path / "m.zarr", _catalog([(src[0], src[1], 0.03)], tmp_path / "c.ecsv"),
+             tmp_path / "r.zarr")
+    tree = open_store(tmp_path / "r.zarr")
+    for name in parts:
+        res = tree[name].to_dataset().VISIBILITY.values
+        assert np.max(np.abs(res)) < 1e-7, name
+        assert np.max(np.abs(parts[name].VISIBILITY.values)) > 0.005

@@ -271,6 +271,7 @@ def main() -> None:
     ap.add_argument("--positions", type=int, default=900)
     ap.add_argument("--markdown", default=None, help="also write the tables to this file")
     ap.add_argument("--skip-scaling", action="store_true")
+    ap.add_argument("--only-e2e", action="store_true", help="only the end-to-end headline run")
     args = ap.parse_args()
     rng = np.random.default_rng(2015)
     n_time = max(2, int(round(3384 * args.scale)))
@@ -281,6 +282,9 @@ def main() -> None:
         "other work was running on the machine at the same time")
     out("")
     e2e = section_end_to_end(n_time, args.positions, rng)
+    if args.only_e2e:
+        out(f"load average at end: {os.getloadavg()[0]:.1f}")
+        return
     section_kernels(e2e["uvw"], e2e["freq"], e2e["ra"], e2e["dec"], rng, e2e["nvis"])
     del e2e
     if not args.skip_scaling:

@@ -80,4 +80,25 @@ def test_image_cli_errors(store, capsys, tmp_path):
     rc = main(["image", str(tmp_path / "none.zarr"), str(tmp_path / "x.fits"), "--size", "32",
                "--cell", "1", "--no-progress"])
     assert rc == 1 and "none.zarr" in capsys.readouterr().err
+    from xstack.imaging.fitsio import make_header, write_image
+
+    write_image(tmp_path / "mask.fits", np.ones((40, 40)), make_header(40, 40, 2.0, (1.0, -0.5)))
+    rc = main(["image", str(d / "d.zarr"), str(tmp_path / "x.fits"), "--size", "64", "--cell", "2",
+               "--niter", "5", "--mask", str(tmp_path / "mask.fits"), "--no-progress"])
+    assert rc == 1 and "mask shape" in capsys.readouterr().err
     assert not list(tmp_path.glob("x*"))
+
+
+def test_image_cli_mask_limits_components(store, tmp_path):
+    d, _ = store
+    from xstack.imaging.fitsio import make_header, write_image
+
+    mask = np.zeros((64, 64))
+    mask[:8, :8] = 1.0  # a corner far from the source
+    write_image(tmp_path / "mask.fits", mask, make_header(64, 64, 2.0, (1.0, -0.5)))
+    rc = main(["image", str(d / "d.zarr"), str(tmp_path / "m.fits"), "--size", "64", "--cell", "2",
+               "--niter", "50", "--mask", str(tmp_path / "mask.fits"), "--no-progress"])
+    assert rc == 0
+    model = read_image(tmp_path / "m.model.fits")[0]
+    assert np.count_nonzero(model) > 0
+    assert np.all(model[8:, :] == 0) and np.all(model[:, 8:] == 0)

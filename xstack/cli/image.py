@@ -26,6 +26,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--gain", type=float, default=0.1, help="CLEAN loop gain (default 0.1)")
     p.add_argument("--algorithm", choices=("hogbom", "clark"), default="hogbom",
                    help="CLEAN minor-cycle algorithm (default hogbom)")
+    p.add_argument("--mask", default=None, metavar="MASK.fits",
+                   help="CLEAN mask: FITS image of the output's size, non-zero where components "
+                        "may be placed")
     p.add_argument("--weighting", choices=("natural", "uniform", "briggs"), default="natural")
     p.add_argument("--robust", type=float, default=0.0, help="Briggs robustness (default 0)")
     p.add_argument("--pbcor", action="store_true",
@@ -108,9 +111,18 @@ def run(args: argparse.Namespace) -> int:
                   progress=not args.no_progress)
     if not Path(args.data).exists():
         raise XstackError(f"{args.data}: no such store")
+    mask = None
+    if args.mask is not None:
+        from xstack.imaging.fitsio import read_image
+
+        mdata = read_image(args.mask)[0]
+        if mdata.shape != (args.size, args.size):
+            raise XstackError(f"{args.mask}: mask shape {mdata.shape} differs from the image "
+                              f"({args.size}, {args.size})")
+        mask = np.isfinite(mdata) & (mdata != 0)
     if args.niter > 0:
         result, cres = clean_data(args.data, niter=args.niter, threshold=threshold,
-                                  gain=args.gain, algorithm=args.algorithm, **common)
+                                  gain=args.gain, algorithm=args.algorithm, mask=mask, **common)
         residual, model = cres.residual, cres.model
         n_components = cres.n_components
     else:

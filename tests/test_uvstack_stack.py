@@ -239,3 +239,17 @@ def test_simulated_point_source_through_the_sim_stage():
     res = uvstack(xr.DataTree.from_dict(parts), cats["targets"])
     assert res.positions["attenuation"][0, 0] < 0.99  # really attenuated
     assert res.flux_jy == pytest.approx(1e-3, rel=1e-6)
+
+
+def test_nufft_engine_end_to_end(rng):
+    """Compact array, compact field: the NUFFT engine equals numba; huge grids are refused."""
+    ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=14, extent_m=100.0,
+                              telescope="ALMA", dish=12.0, freq0=100e9, pols=("XX", "YY"))
+    ra, dec = lm_to_radec(rng.uniform(-1e-4, 1e-4, 30), rng.uniform(-1e-4, 1e-4, 30), *VLA_CENTER)
+    a = uvstack(_tree(p=ds), _cat(ra, dec), engine="nufft")
+    b = uvstack(_tree(p=ds), _cat(ra, dec), engine="numba")
+    assert a.flux_jy == pytest.approx(b.flux_jy, rel=1e-9, abs=1e-9 * b.flux_err_jy)
+    big = make_stack_partition(n_time=4, n_ant=6, n_chan=2, sigma=1.0, extent_m=30000.0)
+    ra2, dec2 = lm_to_radec([-4e-3, 4e-3], [4e-3, -4e-3], *VLA_CENTER)
+    with pytest.raises(XstackError, match="nufft"):
+        uvstack(_tree(p=big), _cat(ra2, dec2), engine="nufft", primary_beam="none")

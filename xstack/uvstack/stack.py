@@ -573,8 +573,13 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         ds_out, sums = _stacked_dataset(p, engine_used, center, options, ra, dec)
         stacked[p.name] = ds_out
         sums_graph.append(sums)
-    with dask_progress("uvstack: flux", enabled=progress):
-        sums = dask.compute(*sums_graph)
+    try:
+        with dask_progress("uvstack: flux", enabled=progress):
+            sums = dask.compute(*sums_graph)
+    except MemoryError as exc:
+        if engine_used != "nufft":
+            raise
+        raise XstackError(f"engine 'nufft': {exc}") from None
     sums = [np.asarray(s, dtype=np.float64) for s in sums]
     scale = np.array([p.sum_weight for p in active])
     num = sum(s_p * s[0] for s_p, s in zip(scale, sums))

@@ -207,3 +207,20 @@ def test_off_pixel_source_within_pixelisation_loss():
     assert 0.8 < expected < 0.99
     assert res.image[y, x] == pytest.approx(expected, abs=0.02)
     assert res.image[y, x] < 1.0
+
+
+@pytest.mark.slow
+def test_type3_size_image_is_practical():
+    """A 4000 x 4000 image (paper type 3: 30' at 0.45") with w-term, point source recovered."""
+    import time
+
+    src = offset_position(-400.0, 300.0)  # 8' off-centre: the w-term matters
+    ds = make_sky_partition([(src[0], src[1], 1.0)], n_time=60, n_ant=27, n_chan=4,
+                            max_baseline=30000.0)
+    t = time.perf_counter()
+    res = make_image(ds, size=4000, cell_arcsec=0.45, epsilon=1e-5)
+    assert time.perf_counter() - t < 600
+    y, x = np.unravel_index(np.argmax(res.image), res.image.shape)
+    world = res.wcs.pixel_to_world(x, y)
+    assert world.separation(SkyCoord(src[0] * u.rad, src[1] * u.rad)).arcsec < 0.45
+    assert res.image[y, x] > 0.9

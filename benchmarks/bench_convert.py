@@ -7,6 +7,8 @@ this measures, each in a fresh child process so peak memory is that run's alone:
   WEIGHT_SPECTRUM, UVW, TIME, ANTENNA1/2, FLAG_ROW, TIME_CENTROID, EXPOSURE) in row blocks
   of ~32 MB, data discarded;
 * ``xstack.convert_ms`` of the same MS with default chunks (~128 MB);
+* the output floor: writing as many bytes as the store holds with ``numpy.tofile`` in
+  128 MB files (convert cannot beat read + write);
 * optionally ``xstack.export_ms`` of the store back to an MS (``--export``).
 
 Wall time, CPU time (user + system, all threads), throughput (MB of MS per second of wall
@@ -57,6 +59,19 @@ for r in range(0, n, block):
 t.close()
 print(json.dumps({{"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
                   "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "rows": n}}))
+"""
+
+_WRITE = """
+import json, os, resource, sys, time
+import numpy as np
+nbytes, out = int(sys.argv[1]), sys.argv[2]
+piece = np.random.default_rng(0).integers(0, 255, size=128 * 1024**2, dtype=np.uint8)
+t0, c0 = time.perf_counter(), time.process_time()
+os.makedirs(out, exist_ok=True)
+for k in range(0, nbytes, piece.size):
+    piece[:min(piece.size, nbytes - k)].tofile(os.path.join(out, f"{k}.bin"))
+print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
 _CONVERT = """
@@ -118,6 +133,10 @@ def main() -> None:
         for _ in range(args.repeat):
             runs = {"plain": _run(_PLAIN.format(row_bytes=ROW_BYTES), str(ms)),
                     "convert": _run(_CONVERT, str(ms), str(store))}
+            # the cost of writing the store's bytes with numpy.tofile: the output floor
+            raw = work / "raw-write"
+            runs["write"] = _run(_WRITE, str(_du(store)), str(raw))
+            shutil.rmtree(raw, ignore_errors=True)
             if args.export:
                 runs["export"] = _run(_EXPORT, str(store), str(work / f"bench_{size:g}GB.out.ms"))
             for k, v in runs.items():
@@ -137,15 +156,18 @@ def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
           f"MS: {N_ANT} antennas ({n_bl} baselines), {N_CHAN} channels, {len(POLS)} correlations, "
           "WEIGHT_SPECTRUM; warm page cache (MS just written)\n")
-    head = ("| MS size | rows | plain read wall / CPU (s) | convert wall / CPU (s) | convert MB/s | "
-            "convert Mvis/s | wall ratio | CPU ratio | peak RSS plain / convert (MB) | store size (MB) |")
+    head = ("| MS size | rows | plain read wall / CPU (s) | raw write of the store's bytes wall / CPU (s) "
+            "| convert wall / CPU (s) | convert MB/s | convert Mvis/s | convert / plain read, wall | "
+            "convert / (read + write), wall | peak RSS plain / convert (MB) | store size (MB) |")
     print(head)
     print("|---" * (head.count("|") - 1) + "|")
     for r in results:
+        floor = r["plain_wall"] + r["write_wall"]
         print(f"| {r['ms_mb'] / 1e3:.2f} GB | {r['rows']} | {r['plain_wall']:.2f} / {r['plain_cpu']:.2f} | "
+              f"{r['write_wall']:.2f} / {r['write_cpu']:.2f} | "
               f"{r['convert_wall']:.2f} / {r['convert_cpu']:.2f} | {r['ms_mb'] / r['convert_wall']:.0f} | "
               f"{r['n_vis'] / r['convert_wall'] / 1e6:.1f} | {r['convert_wall'] / r['plain_wall']:.2f} | "
-              f"{r['convert_cpu'] / r['plain_cpu']:.2f} | "
+              f"{r['convert_wall'] / floor:.2f} | "
               f"{r['plain_rss_mb']:.0f} / {r['convert_rss_mb']:.0f} | "
               f"{r['store_mb']:.0f} |")
     if args.export:

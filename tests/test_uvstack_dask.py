@@ -169,3 +169,27 @@ def test_row_substeps_inside_a_chunk(problem, monkeypatch):
     ok = np.isfinite(ref["stacked"]["p"])
     np.testing.assert_allclose(res.stacked["p"]["VISIBILITY"].values[ok], ref["stacked"]["p"][ok],
                                rtol=0, atol=1e-9)
+
+
+@pytest.mark.realdata
+def test_real_alma_phase_centre_is_weighted_mean(tmp_path):
+    testing = pytest.importorskip("xstack.testing")
+    from xstack.io.convert import convert_ms
+    from xstack.schema import iter_partitions
+
+    try:
+        ms = testing.real_ms("alma", tmp_path)
+    except Exception as exc:  # pyuvdata (optional test dependency) missing
+        pytest.skip(f"real ALMA MS unavailable: {exc}")
+    tree = open_store(convert_ms(ms, tmp_path / "alma.zarr"))
+    name, ds = next(iter(iter_partitions(tree)))
+    ra0, dec0 = ds.attrs["phase_center"]
+    res = uvstack(tree, _cat(ra0, dec0))  # ALMA beam: 10.7 m Airy, A = 1 at the centre
+    vis = ds["VISIBILITY"].values.astype(np.complex128)
+    w = ds["WEIGHT"].values.astype(np.float64)
+    par = np.array([str(p) in ("XX", "YY") for p in ds["polarization"].values])
+    good = ~ds["FLAG"].values & par & (w > 0) & np.isfinite(vis)
+    assert res.n_visibilities == np.count_nonzero(good) > 0
+    assert res.flux_jy == pytest.approx(np.sum(w[good] * vis[good].real) / np.sum(w[good]),
+                                        rel=1e-12)
+    assert res.positions["attenuation"][0, list(res.positions.meta["partitions"]).index(name)] == 1.0

@@ -10,7 +10,7 @@ to ``dest_dir`` and returns its path.
 from __future__ import annotations
 
 from xstack.testing._ms import DEFAULT_PHASE_CENTER, make_test_ms, uvw_from_itrf
-from xstack.testing._real import REAL_MS, pyuvdata_data_dir, real_ms, require_real_ms
+from xstack.testing._real import REAL_MS, RealDataUnavailable, pyuvdata_data_dir, real_ms, require_real_ms
 
-__all__ = ["DEFAULT_PHASE_CENTER", "REAL_MS", "make_test_ms", "pyuvdata_data_dir", "real_ms",
-           "require_real_ms", "uvw_from_itrf"]
+__all__ = ["DEFAULT_PHASE_CENTER", "REAL_MS", "RealDataUnavailable", "make_test_ms",
+           "pyuvdata_data_dir", "real_ms", "require_real_ms", "uvw_from_itrf"]

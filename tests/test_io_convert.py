@@ -242,3 +242,28 @@ def test_exported_ms_structure(tmp_path):
         col = {"FIELD": "PHASE_DIR", "SPECTRAL_WINDOW": "CHAN_FREQ", "POLARIZATION": "CORR_TYPE"}[sub]
         for r in range(a.nrows()):
             np.testing.assert_array_equal(a.getcell(col, r), b.getcell(col, r))
+
+
+def test_export_of_a_store_not_from_an_ms(tmp_path):
+    """A store built in memory (as simulate/uvstack write them: no TIME_CENTROID, no scan
+    numbers) exports, and converts back to the same arrays."""
+    from conftest import make_partition
+
+    from xstack.schema import write_store
+
+    p0 = make_partition(n_time=5, n_ant=4, n_chan=3, seed=1)
+    p1 = make_partition(n_time=7, n_ant=4, n_chan=3, seed=2, phase_center=(0.91, -0.49))
+    p1.attrs.update(field_id=1, field_name="field1")
+    with pytest.raises(xstack.XstackError, match="different antenna tables"):
+        export_ms(write_store({"spw0_field0": p0, "spw0_field1": p1}, tmp_path / "bad.zarr"),
+                  tmp_path / "bad.ms")
+    assert not (tmp_path / "bad.ms").exists()
+    p1["ANTENNA_POSITION"] = p0["ANTENNA_POSITION"]  # one array observed both fields
+    src = write_store({"spw0_field0": p0, "spw0_field1": p1}, tmp_path / "src.zarr", kind="stacked")
+    ms = export_ms(src, tmp_path / "x.ms")
+    with pt.table(str(ms), ack=False) as t:
+        assert t.nrows() == (5 + 7) * 6
+        assert set(t.getcol("SCAN_NUMBER").tolist()) == {1}
+        np.testing.assert_array_equal(t.getcol("INTERVAL"), 6.0)
+    back = convert_ms(ms, tmp_path / "back.zarr")
+    assert_stores_identical(src, back)

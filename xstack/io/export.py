@@ -74,7 +74,8 @@ def _metadata(parts: list[tuple[str, Any]], where: str) -> dict[str, Any]:
     ids = []
     t_min, t_max = np.inf, -np.inf
     for name, ds in parts:
-        if [str(a) for a in ds["antenna_name"].values] != ant_names:
+        if [str(a) for a in ds["antenna_name"].values] != ant_names or not np.array_equal(
+                np.asarray(ds["ANTENNA_POSITION"].values, dtype=np.float64), positions):
             raise XstackError(f"{where}: partitions {parts[0][0]} and {name} have different antenna "
                               "tables; export them separately")
         freq = np.asarray(ds["frequency"].values, dtype=np.float64)

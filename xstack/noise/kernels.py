@@ -23,38 +23,13 @@ the phasor advances by complex multiplication (recurrence), re-seeded exactly ev
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
+from xstack._phase import cis_minus_turns as _cis_minus
 from xstack.coords import SPEED_OF_LIGHT
 
 DEFAULT_RESEED = 16
-
-_S3, _S5, _S7, _S9 = -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880
-_S11, _S13, _S15 = -1.0 / 39916800, 1.0 / 6227020800, -1.0 / 1307674368000
-_C2, _C4, _C6, _C8 = -0.5, 1.0 / 24, -1.0 / 720, 1.0 / 40320
-_C10, _C12, _C14, _C16 = -1.0 / 3628800, 1.0 / 479001600, -1.0 / 87178291200, 1.0 / 20922789888000
-_TWO_PI = 2.0 * math.pi
-
-
-@numba.njit(inline="always", fastmath={"contract"})
-def _cis_minus(t):
-    """exp(-2 pi i t) as (re, im) for t in turns; exact reduction to the octant."""
-    s = t - math.floor(t + 0.5)
-    q = math.floor(4.0 * s + 0.5)
-    x = _TWO_PI * (s - 0.25 * q)
-    x2 = x * x
-    sn = x * (1.0 + x2 * (_S3 + x2 * (_S5 + x2 * (_S7 + x2 * (_S9 + x2 * (_S11 + x2 * (
-        _S13 + x2 * _S15)))))))
-    cs = 1.0 + x2 * (_C2 + x2 * (_C4 + x2 * (_C6 + x2 * (_C8 + x2 * (_C10 + x2 * (
-        _C12 + x2 * (_C14 + x2 * _C16)))))))
-    qq = q * q
-    cq = 1.0 + qq * (qq - 7.0) / 6.0
-    sq = q * (4.0 - qq) / 3.0
-    return cs * cq - sn * sq, -(sn * cq + cs * sq)
-
 
 _FM = {"reassoc", "contract", "nsz", "arcp"}
 

@@ -42,6 +42,7 @@ import threading
 import numba
 import numpy as np
 
+from xstack._phase import cis_minus_turns as _cis_minus_turns
 from xstack.coords import SPEED_OF_LIGHT
 
 # The kernel already uses every core (numba prange); calls from several dask threads are
@@ -51,38 +52,6 @@ _KERNEL_LOCK = threading.Lock()
 
 #: Re-seed the channel recurrence exactly every this many channels.
 DEFAULT_RESEED = 16
-
-# Taylor coefficients of sin(x) (odd, x..x^15) and cos(x) (even, 1..x^16) on |x| <= pi/4:
-# the first omitted terms are < 5e-17 there.
-_S3, _S5, _S7, _S9 = -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880
-_S11, _S13, _S15 = -1.0 / 39916800, 1.0 / 6227020800, -1.0 / 1307674368000
-_C2, _C4, _C6, _C8 = -0.5, 1.0 / 24, -1.0 / 720, 1.0 / 40320
-_C10, _C12, _C14, _C16 = -1.0 / 3628800, 1.0 / 479001600, -1.0 / 87178291200, 1.0 / 20922789888000
-_TWO_PI = 2.0 * math.pi
-
-
-@numba.njit(inline="always", fastmath=False)
-def _cis_minus_turns(t):
-    """(cos, -sin)(2 pi t) = exp(-2 pi i t), t in turns (any magnitude < 2^52).
-
-    Branch-free so that loops calling it vectorise: exact reduction to s = t - round(t) in
-    [-1/2, 1/2], to the octant x = 2 pi (s - q/4) in [-pi/4, pi/4] (exact by Sterbenz), Taylor
-    series there, and the quadrant rotation by q with exact {-1, 0, 1} factors.
-    """
-    s = t - math.floor(t + 0.5)
-    q = math.floor(4.0 * s + 0.5)  # -2 .. 2
-    x = _TWO_PI * (s - 0.25 * q)
-    x2 = x * x
-    sn = x * (1.0 + x2 * (_S3 + x2 * (_S5 + x2 * (_S7 + x2 * (_S9 + x2 * (_S11 + x2 * (
-        _S13 + x2 * _S15)))))))
-    cs = 1.0 + x2 * (_C2 + x2 * (_C4 + x2 * (_C6 + x2 * (_C8 + x2 * (_C10 + x2 * (
-        _C12 + x2 * (_C14 + x2 * _C16)))))))
-    qq = q * q
-    cq = 1.0 + qq * (qq - 7.0) / 6.0  # cos(q pi/2), exact for q in -2..2
-    sq = q * (4.0 - qq) / 3.0  # sin(q pi/2)
-    cos_t = cs * cq - sn * sq
-    sin_t = sn * cq + cs * sq
-    return cos_t, -sin_t
 
 
 @numba.njit(parallel=True, fastmath={"reassoc", "contract"}, cache=True)

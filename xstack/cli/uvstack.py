@@ -26,8 +26,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="input stores or MSs, then the catalog (ra, dec in degrees or "
                         "sexagesimal; optional weight, sigma), then the output store")
     p.add_argument("--weighting", default="pb", choices=("none", "pb", "sigma2", "column"),
-                   help="position weights: none, pb (A^2, default), sigma2 (1/sigma^2 from the "
-                        "catalog's sigma column, else analytic 1/A noise), column (weight column)")
+                   help="position weights: none, pb (A^2, default), sigma2 (1/sigma^2 from "
+                        "--noise-image, else the catalog's sigma column, else analytic 1/A "
+                        "noise), column (weight column)")
+    p.add_argument("--noise-image", default=None, metavar="RESIDUAL.fits",
+                   help="with --weighting sigma2: measure sigma_k as the clipped rms of this "
+                        "residual image (Jy/beam, primary-beam corrected) in a stamp of ~300 "
+                        "beam areas around each position, outside a circle of radius BMAJ "
+                        "(paper 3.2)")
     p.add_argument("--primary-beam", default="auto", metavar="MODEL",
                    help="auto (telescope standard, default), airy, gaussian, none, or PB.fits")
     p.add_argument("--pb-cutoff", type=float, default=0.1, metavar="X",
@@ -74,6 +80,11 @@ def run(args: argparse.Namespace) -> int:
             raise XstackError(f"{d}: no such store or MeasurementSet")
     if args.profile_bins < 1:
         raise XstackError("--profile-bins must be >= 1")
+    if args.noise_image is not None:
+        if args.weighting != "sigma2":
+            raise XstackError("--noise-image needs --weighting sigma2")
+        if not Path(args.noise_image).is_file():
+            raise XstackError(f"{args.noise_image}: no such noise image (a FITS file)")
     positions = read_catalog(catalog)
     pols: Any = args.polarizations
     if pols not in ("parallel", "all"):
@@ -82,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     res = uvstack(data if len(data) > 1 else data[0], positions, weighting=args.weighting,
                   primary_beam=args.primary_beam, pb_cutoff=args.pb_cutoff, uvmin=args.uvmin,
-                  uvmax=args.uvmax, polarizations=pols, engine=args.engine, out=out,
+                  uvmax=args.uvmax, noise_image=args.noise_image, polarizations=pols,
+                  engine=args.engine, out=out,
                   overwrite=args.overwrite, progress=progress)
     table = uv_profile(out, bins=args.profile_bins, uvmin=args.uvmin, uvmax=args.uvmax,
                        polarizations=pols)

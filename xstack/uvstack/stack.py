@@ -434,7 +434,7 @@ def _mean_direction(ra: np.ndarray, dec: np.ndarray) -> tuple[float, float]:
 
 def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: Any = "auto",
             pb_cutoff: float = 0.1, uvmin: Any = None, uvmax: Any = None, sigma: Any = None,
-            polarizations: Any = "parallel", engine: str = "auto",
+            noise_image: Any = None, polarizations: Any = "parallel", engine: str = "auto",
             out: str | os.PathLike | None = None, overwrite: bool = False,
             progress: bool = False) -> StackResult:
     """Stack visibilities at catalog positions (paper eq. 4) and estimate the stacked flux.
@@ -452,9 +452,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     weighting
         Position weights W_k: ``none`` (1), ``pb`` (A_k^2 at the partition's mean frequency:
         the inverse variance of the primary-beam corrected flux), ``sigma2`` (1/sigma_k^2
-        from ``sigma=`` or the catalog's ``sigma`` column; without them the analytic
-        sigma_k proportional to 1/A_k of the paper's ALMA case, i.e. the same as ``pb``),
-        ``column`` (the catalog's ``weight`` column).
+        from ``sigma=``, else measured in ``noise_image``, else the catalog's ``sigma``
+        column; without any of them the analytic sigma_k proportional to 1/A_k of the
+        paper's ALMA case, i.e. the same as ``pb``), ``column`` (the catalog's ``weight``
+        column).
     primary_beam
         ``auto`` (the telescope's standard beam, :func:`xstack.beams.standard_beam`),
         ``airy``, ``gaussian``, ``none``, or the path of a FITS primary-beam image.
@@ -465,6 +466,16 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         are metres). The stacked data themselves keep every visibility.
     sigma
         Per-position noise (Jy), for ``weighting="sigma2"``.
+    noise_image
+        For ``weighting="sigma2"`` without ``sigma=``: a residual image of the same data in
+        Jy/beam (FITS path, HDU or :class:`xstack.imaging.image.ImageResult`), primary-beam
+        corrected so that its noise grows as 1/A. sigma_k is the 3-sigma clipped rms of a
+        stamp of ~300 beam areas around each position outside a circle of radius BMAJ
+        (paper §3.2, :func:`xstack.uvstack.localnoise.measure_local_noise`); it takes
+        precedence over a catalog ``sigma`` column. Only ratios of the weights matter, so
+        the image's absolute scale cancels. Every position that enters a pointing needs an
+        estimate (on the image, enough finite pixels around it), otherwise XstackError
+        naming the rows; positions in no pointing need none.
     polarizations
         ``parallel`` (Stokes I: XX/YY or RR/LL), ``all`` or a list of names, for the flux.
     engine
@@ -485,7 +496,8 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     ------
     XstackError
         Bad options, an unreadable catalog, a catalog entirely outside the pointings, zero
-        total weight, no usable visibility, or an existing ``out`` without ``overwrite``.
+        total weight, no usable visibility, an existing ``out`` without ``overwrite``, a
+        ``noise_image`` without celestial WCS or without an estimate for a used position.
     """
     from xstack._atomic import check_output
     from xstack._progress import dask_progress
@@ -503,15 +515,35 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     ra = np.radians(np.asarray(table["ra"], dtype=np.float64))
     dec = np.radians(np.asarray(table["dec"], dtype=np.float64))
     sig = None
+    noise = None
+    if noise_image is not None:
+        if weighting != "sigma2":
+            raise XstackError(f"noise_image is used only with weighting='sigma2' (got "
+                              f"{weighting!r})")
+        if sigma is not None:
+            raise XstackError("give sigma= or noise_image=, not both")
     if weighting == "sigma2":
         if sigma is not None:
             try:
                 sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (npos,)).copy()
             except (TypeError, ValueError):
                 raise XstackError(f"sigma must be one number or one per position ({npos})") from None
+        elif noise_image is not None:
+            from xstack.uvstack.localnoise import measure_local_noise
+
+            if "sigma" in table.colnames:
+                warnings.warn("the catalog's sigma column is ignored: sigma_k are measured in "
+                              "noise_image", stacklevel=2)
+            noise = measure_local_noise(noise_image, table)
+            # rows without an estimate get weight 0 here; a used one is an error below
+            sig = np.where(np.isfinite(noise.sigma), noise.sigma, np.inf)
+            if noise.pbcor is False and str(primary_beam).lower() != "none":
+                warnings.warn(f"noise image {noise.name} is not primary-beam corrected "
+                              "(XSPBCOR = F): its sigma_k miss the 1/A_k rise of the noise "
+                              "of the corrected flux; image with pbcor=True", stacklevel=2)
         elif "sigma" in table.colnames:
             sig = np.asarray(table["sigma"], dtype=np.float64)
-        if sig is not None and not np.all(np.isfinite(sig) & (sig > 0)):
+        if noise is None and sig is not None and not np.all(np.isfinite(sig) & (sig > 0)):
             bad = int(np.argmax(~(np.isfinite(sig) & (sig > 0))))
             raise XstackError(f"positions row {bad + 1}: sigma must be positive and finite")
     col_weight = None
@@ -544,6 +576,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     if not covered.any():
         raise XstackError(f"none of the {npos} positions lies inside a pointing "
                           f"(primary-beam cutoff {pb_cutoff})")
+    if noise is not None:
+        missing = np.flatnonzero(covered & ~np.isfinite(noise.sigma))
+        if missing.size:
+            raise XstackError(noise.describe_bad(missing))
     uncovered = table[~covered]
     if len(uncovered):
         warnings.warn(f"{len(uncovered)} of {npos} positions lie in no pointing and are not "
@@ -563,10 +599,13 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         "uvmax": None if uvmax is None else str(uvmax),
         "polarizations": polarizations if isinstance(polarizations, str) else list(polarizations),
         "engine": engine_used,
-        "sigma": "given" if sig is not None else ("analytic" if weighting == "sigma2" else None),
+        "sigma": (f"local-noise:{noise.name}" if noise is not None else "given"
+                  if sig is not None else "analytic" if weighting == "sigma2" else None),
         "stack_center_deg": [float(np.degrees(center[0])), float(np.degrees(center[1]))],
         "_lo": lo, "_hi": hi,
     }
+    if noise is not None:
+        options["local_noise"] = noise.provenance()
     stacked: dict[str, xr.Dataset] = {}
     sums_graph = []
     for p in active:
@@ -599,6 +638,8 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     pos["weight_used"] = np.stack([p.weight for p in plans], axis=1)
     pos["attenuation"] = np.stack([p.attenuation for p in plans], axis=1)
     pos["n_pointings"] = pos["used"].sum(axis=1)
+    if noise is not None:
+        pos["sigma_local"] = noise.sigma
     pos.meta["partitions"] = [p.name for p in plans]
     n_positions = int(np.count_nonzero(used_pos))
     if out is not None:

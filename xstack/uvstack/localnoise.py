@@ -1,0 +1,382 @@
+"""Local noise sigma_k around stacking positions, measured in a residual image (paper §3.2).
+
+The paper weights image stamps by W_k = 1/sigma_k^2 with sigma_k "the brightness standard
+deviation" of a stamp of ~300 beam areas around position k, outside a central circle of
+radius BMAJ, and uses "the same local noise estimators" for uv-stacking (§3.3). This module
+measures that sigma_k for :func:`xstack.uvstack.stack.uvstack` (``weighting="sigma2"``,
+``noise_image=``). Stamps, the central mask and the paper's plain standard deviation come
+from :mod:`xstack.imstack.kernels`; images are read by :func:`xstack.imstack.io.read_image`
+(any FITS image with a celestial WCS, an HDU, or an in-memory
+:class:`xstack.imaging.image.ImageResult`).
+
+The default estimator is a sigma-clipped standard deviation (see :data:`ESTIMATORS`): on
+Gaussian noise it agrees with the paper's standard deviation and is almost as precise,
+while a faint source, a clean residual or an artefact that happens to fall in the stamp
+does not inflate sigma_k (and so does not down-weight the position for a reason unrelated
+to its noise).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from xstack.errors import XstackError
+from xstack.imstack import kernels
+from xstack.imstack.io import ImageInfo, read_image
+
+#: ``clipped``: iterative 3-sigma clipping about the median, the std of what remains,
+#: corrected for the truncation (the default). ``mad``: 1.4826 x the median absolute
+#: deviation (breakdown point 50 %, but ~1.6x the scatter of the std on Gaussian noise).
+#: ``std``: the plain standard deviation of the paper, which also counts any source or
+#: artefact in the stamp as noise.
+ESTIMATORS = ("clipped", "mad", "std")
+
+#: Clipping threshold (in units of the current std about the median) of ``clipped``.
+CLIP_SIGMA = 3.0
+
+#: Most clipping iterations; the window only shrinks, so it converges in a few.
+CLIP_MAXITER = 10
+
+#: sigma / MAD of a Gaussian: 1 / Phi^-1(3/4).
+MAD_TO_SIGMA = 1.482602218505602
+
+#: A stamp covers about this many beam areas by default (paper §3.2: "approximately 300").
+STAMP_BEAM_AREAS = 300.0
+
+#: Default stamp (pixels) and mask radius (pixels) for an image without a restoring beam,
+#: the paper's 64 x 64 stamps and imstack's 5-pixel fallback mask.
+DEFAULT_STAMP_PIXELS = 64
+DEFAULT_MASK_PIXELS = 5.0
+
+#: Least fraction of a stamp's pixels outside the mask that must be finite (on the image and
+#: not blanked). A position at the very corner of an image keeps about a quarter of its stamp.
+MIN_FRACTION = 0.25
+
+
+def _clip_correction(k: float) -> float:
+    """std of N(0, 1) restricted to |x| < c, at the fixed point c = k std(c).
+
+    Converged k-sigma clipping of Gaussian noise stops where the threshold is k times the std
+    of the values it keeps; that std underestimates sigma by this factor (0.9868 for k = 3).
+    """
+    c = k
+    for _ in range(100):
+        s = math.sqrt(1.0 - 2.0 * c * math.exp(-0.5 * c * c) / math.sqrt(2.0 * math.pi)
+                      / math.erf(c / math.sqrt(2.0)))
+        c_new = k * s
+        if abs(c_new - c) < 1e-14:
+            break
+        c = c_new
+    return s
+
+
+#: Bias factor of the converged 3-sigma clipped std on Gaussian noise (divided out).
+CLIP_CORRECTION = _clip_correction(CLIP_SIGMA)
+
+
+@dataclass
+class LocalNoise:
+    """Local-noise estimates of :func:`measure_local_noise`.
+
+    Attributes
+    ----------
+    sigma
+        float64 (n,): sigma_k in the image unit (``unit``, normally Jy/beam); NaN for the
+        rows in ``bad_rows``.
+    n_pixels
+        int64 (n,): finite stamp pixels outside the central mask that entered sigma_k.
+    bad_rows
+        0-based rows without a usable estimate; ``reasons`` says why, one entry per row.
+    stamp_size
+        Stamp side, pixels.
+    mask_radius_arcsec
+        Radius of the central mask, arcsec.
+    min_pixels
+        Least finite pixels a stamp needs outside the mask.
+    estimator
+        One of :data:`ESTIMATORS`.
+    unit
+        BUNIT of the image ("" if absent).
+    name
+        The image's label (file name) for messages and provenance.
+    pbcor
+        ``XSPBCOR`` of an xstack image (True: primary-beam corrected), None if unknown.
+    """
+
+    sigma: np.ndarray
+    n_pixels: np.ndarray
+    bad_rows: np.ndarray
+    reasons: list[str]
+    stamp_size: int
+    mask_radius_arcsec: float
+    min_pixels: int
+    estimator: str
+    unit: str
+    name: str
+    pbcor: bool | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def describe_bad(self, rows: np.ndarray | None = None, limit: int = 5) -> str:
+        """One-line message naming the (1-based) rows without an estimate, with the reason."""
+        rows = self.bad_rows if rows is None else np.asarray(rows, dtype=np.int64)
+        why = dict(zip(self.bad_rows.tolist(), self.reasons))
+        parts = [f"row {r + 1} {why.get(int(r), 'no estimate')}" for r in rows[:limit]]
+        more = f" and {rows.size - limit} more" if rows.size > limit else ""
+        return (f"noise image {self.name}: no local-noise estimate for {rows.size} of "
+                f"{self.sigma.size} positions: {'; '.join(parts)}{more}")
+
+    def provenance(self) -> dict[str, Any]:
+        """JSON-ready record of how sigma_k was measured."""
+        return {"image": self.name, "unit": self.unit, "estimator": self.estimator,
+                "stamp_size": int(self.stamp_size),
+                "mask_radius_arcsec": float(self.mask_radius_arcsec),
+                "min_pixels": int(self.min_pixels), "pbcor": self.pbcor}
+
+
+def _positions_deg(positions: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(ra, dec) in degrees from a catalog path, Table or an (N, 2) array in degrees."""
+    from xstack.imstack.stack import _positions  # the catalog rules of image-stacking
+
+    ra, dec, _ = _positions(positions)
+    return ra, dec
+
+
+def _label(image: Any) -> str | None:
+    if isinstance(image, (str, os.PathLike)):
+        return str(image)
+    if isinstance(image, ImageInfo):
+        return image.name
+    return None
+
+
+def _clipped_sigma(vals: np.ndarray, min_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    """Converged 3-sigma clipped std (truncation corrected) of each row; NaN = unusable.
+
+    Each row is sorted once; a clipping window is then an index range of the sorted row, its
+    sums come from cumulative sums (relative to the row's median, so the variance does not
+    cancel) and every iteration costs one comparison pass instead of a median.
+    """
+    n, p = vals.shape
+    srt = np.sort(vals, axis=1)  # NaN sort last
+    nf = np.isfinite(srt).sum(axis=1)
+    rows = np.arange(n)
+    lo = np.zeros(n, dtype=np.int64)
+    hi = nf.astype(np.int64)
+
+    def window_median(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        m = np.maximum(hi - lo, 1)
+        a = srt[rows, np.minimum(lo + (m - 1) // 2, p - 1)]
+        b = srt[rows, np.minimum(lo + m // 2, p - 1)]
+        return 0.5 * (a + b)
+
+    shift = np.where(nf > 0, window_median(lo, hi), 0.0)
+    d = np.where(np.isfinite(srt), srt - shift[:, None], 0.0)
+    c1 = np.zeros((n, p + 1))
+    c2 = np.zeros((n, p + 1))
+    np.cumsum(d, axis=1, out=c1[:, 1:])
+    np.cumsum(d * d, axis=1, out=c2[:, 1:])
+
+    def window_std(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        m = (hi - lo).astype(np.float64)
+        s1 = c1[rows, hi] - c1[rows, lo]
+        s2 = c2[rows, hi] - c2[rows, lo]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            var = (s2 - s1 * s1 / m) / (m - 1.0)
+        return np.sqrt(np.clip(var, 0.0, None))
+
+    for _ in range(CLIP_MAXITER):
+        med = window_median(lo, hi)
+        std = window_std(lo, hi)
+        # comparisons with NaN are False, so blanked pixels never enter a window
+        new_lo = np.maximum(lo, (srt < (med - CLIP_SIGMA * std)[:, None]).sum(axis=1))
+        new_hi = np.minimum(hi, (srt <= (med + CLIP_SIGMA * std)[:, None]).sum(axis=1))
+        new_hi = np.maximum(new_hi, new_lo)
+        if np.array_equal(new_lo, lo) and np.array_equal(new_hi, hi):
+            break
+        lo, hi = new_lo, new_hi
+    sigma = window_std(lo, hi) / CLIP_CORRECTION
+    sigma[nf < max(min_pixels, 2)] = np.nan
+    return sigma, nf
+
+
+def _mad_sigma(vals: np.ndarray, min_pixels: int) -> tuple[np.ndarray, np.ndarray]:
+    nf = np.isfinite(vals).sum(axis=1)
+    sigma = np.full(vals.shape[0], np.nan)
+    ok = nf >= max(min_pixels, 2)
+    if ok.any():
+        v = vals[ok]
+        med = np.nanmedian(v, axis=1)
+        sigma[ok] = MAD_TO_SIGMA * np.nanmedian(np.abs(v - med[:, None]), axis=1)
+    return sigma, nf
+
+
+def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = None,
+                        mask_radius_arcsec: float | None = None, estimator: str = "clipped",
+                        min_fraction: float = MIN_FRACTION) -> LocalNoise:
+    """Local noise sigma_k of a residual image around each position, with diagnostics.
+
+    Parameters
+    ----------
+    image
+        The residual image: a FITS path, an astropy image HDU, an in-memory
+        :class:`xstack.imaging.image.ImageResult` or an :class:`xstack.imstack.io.ImageInfo`.
+        Any celestial WCS; degenerate frequency/Stokes axes are dropped.
+    positions
+        Catalog path or :class:`astropy.table.Table` (``ra``, ``dec`` in degrees), or an
+        (N, 2) array of (ra, dec) in degrees.
+    stamp_size
+        Stamp side in pixels, centred on the pixel nearest to each position. Default: about
+        :data:`STAMP_BEAM_AREAS` beam areas (paper §3.2), odd, at least 4 mask radii and at
+        most the image; 64 pixels if the image has no beam.
+    mask_radius_arcsec
+        Radius of the central circle left out of sigma_k (the stacked source and its main
+        lobe). Default: the beam's major axis BMAJ (paper §3.2); 5 pixels without a beam.
+    estimator
+        ``"clipped"`` (default), ``"mad"`` or ``"std"``; see :data:`ESTIMATORS`.
+    min_fraction
+        A stamp needs finite pixels (on the image, not blanked) in at least this fraction of
+        its area outside the mask, and at least ``imstack.kernels.MIN_NOISE_PIXELS``.
+
+    Returns
+    -------
+    LocalNoise
+        ``sigma`` (image unit, Jy/beam for a residual image; NaN where there is no estimate)
+        and the rows without one: positions off the image, on a blanked pixel, with too few
+        finite pixels, or in a constant (zero-noise) stamp.
+
+    Raises
+    ------
+    XstackError
+        Unreadable image or image without a celestial WCS, a unit that is not per beam,
+        bad options or positions.
+    """
+    if estimator not in ESTIMATORS:
+        raise XstackError(f"unknown noise estimator {estimator!r} (use {', '.join(ESTIMATORS)})")
+    if not 0.0 < float(min_fraction) <= 1.0:
+        raise XstackError(f"min_fraction must be in (0, 1], got {min_fraction}")
+    info = read_image(image, name=_label(image) or "<in-memory image>")
+    bunit = info.bunit
+    if bunit and not bunit.replace(" ", "").lower().endswith("/beam"):
+        raise XstackError(f"noise image {info.name}: BUNIT is {bunit!r}; sigma_k needs a residual "
+                          "image in Jy/beam (not a model, PSF or primary-beam image)")
+    ra, dec = _positions_deg(positions)
+    ny, nx = info.shape
+    pixm = info.pixel_matrix_deg
+    # pixel sizes along the image axes (arcsec); a rotated grid keeps the pixel axes
+    pix_x = float(np.hypot(pixm[0, 0], pixm[1, 0]) * 3600.0)
+    pix_y = float(np.hypot(pixm[0, 1], pixm[1, 1]) * 3600.0)
+    beam = info.beam_arcsec
+    if mask_radius_arcsec is None:
+        radius = beam[0] if beam else DEFAULT_MASK_PIXELS * max(pix_x, pix_y)
+    else:
+        radius = float(mask_radius_arcsec)
+        if not radius > 0:
+            raise XstackError(f"mask radius must be positive, got {mask_radius_arcsec}")
+    if stamp_size is None:
+        if beam:
+            beam_area_pix = math.pi / (4.0 * math.log(2.0)) * beam[0] * beam[1] / (pix_x * pix_y)
+            size = math.ceil(math.sqrt(STAMP_BEAM_AREAS * beam_area_pix))
+            size = max(size, math.ceil(4.0 * radius / min(pix_x, pix_y)))
+        else:
+            size = DEFAULT_STAMP_PIXELS
+        size = min(size | 1, min(nx, ny))
+    else:
+        if isinstance(stamp_size, bool) or int(stamp_size) != stamp_size or stamp_size < 5:
+            raise XstackError(f"stamp size must be an integer >= 5 pixels, got {stamp_size!r}")
+        size = int(stamp_size)
+        if size > min(nx, ny):
+            raise XstackError(f"noise image {info.name}: stamp size {size} is larger than the "
+                              f"image ({nx} x {ny} pixels)")
+    mask = kernels.central_mask(size, radius / pix_x, radius / pix_y)
+    n_outside = int(np.count_nonzero(~mask))
+    min_pixels = max(kernels.MIN_NOISE_PIXELS, math.ceil(float(min_fraction) * n_outside))
+    if n_outside < min_pixels or n_outside < kernels.MIN_NOISE_PIXELS:
+        raise XstackError(f"a stamp of {size} pixels is (almost) inside the central mask of "
+                          f"radius {radius:.3g} arcsec: use a larger stamp or a smaller mask")
+
+    n = ra.size
+    px, py = info.wcs.world_to_pixel_values(ra, dec)
+    px, py = np.asarray(px, np.float64), np.asarray(py, np.float64)
+    on_image = np.isfinite(px) & np.isfinite(py) & (px >= -0.5) & (px < nx - 0.5) \
+        & (py >= -0.5) & (py < ny - 0.5)
+    ix = kernels.nearest_pixel(np.where(on_image, px, 0.0))
+    iy = kernels.nearest_pixel(np.where(on_image, py, 0.0))
+    blanked = on_image & ~np.isfinite(info.data[iy, ix])
+
+    sigma = np.full(n, np.nan)
+    npix = np.zeros(n, dtype=np.int64)
+    outside_idx = np.flatnonzero(~mask.ravel())
+    todo = np.flatnonzero(on_image & ~blanked)
+    for s in range(0, todo.size, kernels.SHIFT_CHUNK):  # chunks bound the stamps' memory
+        sel = todo[s:s + kernels.SHIFT_CHUNK]
+        stamps, _, _ = kernels.extract_stamps(info.data, px[sel], py[sel], size)
+        if estimator == "std":
+            sig = kernels.local_sigma(stamps, mask, min_pixels=min_pixels)
+            nf = np.isfinite(stamps.reshape(sel.size, -1)[:, outside_idx]).sum(axis=1)
+        else:
+            vals = stamps.reshape(sel.size, -1)[:, outside_idx]
+            fn = _clipped_sigma if estimator == "clipped" else _mad_sigma
+            sig, nf = fn(vals, min_pixels)
+        sigma[sel] = sig
+        npix[sel] = nf
+
+    reasons: dict[int, str] = {}
+    for k in np.flatnonzero(~on_image):
+        reasons[int(k)] = f"(ra={ra[k]:.6f}, dec={dec[k]:.6f} deg) is outside the image"
+    for k in np.flatnonzero(blanked):
+        reasons[int(k)] = f"(ra={ra[k]:.6f}, dec={dec[k]:.6f} deg) is on a blanked pixel"
+    for k in todo:
+        if npix[k] < min_pixels:
+            reasons[int(k)] = (f"has only {npix[k]} finite pixels outside the central mask "
+                               f"(need {min_pixels})")
+        elif not sigma[k] > 0:
+            reasons[int(k)] = "has constant pixels around it (zero noise)"
+    bad = np.array(sorted(reasons), dtype=np.int64)
+    sigma[bad] = np.nan
+    pbcor = info.header.get("XSPBCOR")
+    return LocalNoise(sigma=sigma, n_pixels=npix, bad_rows=bad, reasons=[reasons[k] for k in bad],
+                      stamp_size=size, mask_radius_arcsec=float(radius), min_pixels=min_pixels,
+                      estimator=estimator, unit=bunit, name=info.name,
+                      pbcor=None if pbcor is None else bool(pbcor))
+
+
+def local_noise(image: Any, positions: Any, *, stamp_size: int | None = None,
+                mask_radius_arcsec: float | None = None, estimator: str = "clipped",
+                min_fraction: float = MIN_FRACTION, on_bad: str = "raise") -> np.ndarray:
+    """Local noise sigma_k (image unit, Jy/beam) of a residual image around each position.
+
+    The rms of the stamp around each position outside a beam-sized central circle, as the
+    paper measures image-stacking weights (§3.2); see :func:`measure_local_noise` for the
+    parameters and defaults (stamp of ~300 beam areas, mask radius BMAJ, 3-sigma clipped
+    std). For uv-stacking only ratios of the weights 1/sigma_k^2 matter, so the absolute
+    scale (and unit) of the image cancels.
+
+    Parameters
+    ----------
+    on_bad
+        What to do with positions without an estimate (off the image, on a blanked pixel,
+        too few finite pixels around them, zero noise): ``"raise"`` (default) an
+        :class:`~xstack.errors.XstackError` naming the rows; ``"nan"`` return NaN for them
+        and warn, naming the rows.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 (n,) sigma_k in the image unit.
+    """
+    if on_bad not in ("raise", "nan"):
+        raise XstackError(f"on_bad must be 'raise' or 'nan', got {on_bad!r}")
+    res = measure_local_noise(image, positions, stamp_size=stamp_size,
+                              mask_radius_arcsec=mask_radius_arcsec, estimator=estimator,
+                              min_fraction=min_fraction)
+    if res.bad_rows.size:
+        if on_bad == "raise":
+            raise XstackError(res.describe_bad())
+        warnings.warn(res.describe_bad() + " (NaN returned)", stacklevel=2)
+    return res.sigma

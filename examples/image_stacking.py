@@ -1,0 +1,64 @@
+"""Image-stacking: dirty image of a simulated field, stamps at the targets, median and mean.
+
+Images a simulated VLA A field (ducc0 gridder), cuts 64 x 64 stamps around 200 faint
+targets and stacks them by weighted mean and by median, with nearest-pixel alignment (as in
+the paper) and with sub-pixel Fourier-shift alignment, which removes the pixelisation loss.
+Writes the stacked stamps as FITS and PNG.
+
+Run: ``python examples/image_stacking.py [OUTDIR]`` (under a minute).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+import xstack
+
+SCENE = {
+    "name": "example-imstack",
+    "array": {"config": "vla.a"},
+    "observation": {"date": "2014-01-01", "hour_angle": [-1.0, 1.0], "integration": 60.0,
+                    "time_per_pointing": 7200.0},
+    "spectral": {"centre": 1.4e9, "bandwidth": 128e6, "channels": 4,
+                 "polarizations": ["RR", "LL"]},
+    "pointings": {"mode": "single"},
+    "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.01}},
+    "populations": [
+        {"name": "targets", "count": 200, "flux": {"kind": "fixed", "value": "20uJy"},
+         "positions": {"kind": "box", "size_arcsec": [300, 300]}},
+    ],
+}
+
+
+def main(outdir: Path) -> dict[str, float]:
+    sim = xstack.simulate(SCENE, outdir / "sim.zarr", seed=4, overwrite=True)
+    targets = sim.catalogs["targets"]
+    image = xstack.make_image(sim.store, size=1200, cell_arcsec=0.3)
+    print(f"dirty image 1200 x 1200 at 0.3 arcsec, beam {image.beam[0]:.2f} x {image.beam[1]:.2f} "
+          "arcsec")
+    injected = float(np.mean(targets["flux"]))
+    print(f"injected mean flux {injected * 1e6:.2f} uJy (sources are not primary-beam corrected "
+          "in the image, so we stack primary-beam corrected stamps)")
+    results = {}
+    for method, subpixel in (("mean", False), ("mean", "fourier"), ("median", False)):
+        label = f"{method}-{subpixel or 'nearest'}"
+        res = xstack.imstack(image, targets, method=method, subpixel=subpixel, pbcor=True,
+                             out=outdir / f"stack-{label}.fits", overwrite=True)
+        results[label] = res.flux_jy
+        print(f"{label:15s} {res.flux_jy * 1e6:7.2f} +- {res.flux_err_jy * 1e6:.2f} uJy/beam")
+    print(f"outputs in {outdir}")
+    return results
+
+
+if __name__ == "__main__":
+    if len(sys.argv) > 1:
+        out = Path(sys.argv[1])
+        out.mkdir(parents=True, exist_ok=True)
+        main(out)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            main(Path(tmp))

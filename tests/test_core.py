@@ -50,6 +50,109 @@ def test_store_holds_no_object_or_pickle_codecs(tmp_path, small_partition):
                                              "bool", "int32", "int64", "string")
 
 
+class _Payload:
+    """Unpickling this touches a marker file: proof that code ran."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        import pathlib
+
+        return (pathlib.Path.touch, (pathlib.Path(self.marker),))
+
+
+def _poison(store, array, codecs=None, data_type=None):
+    """Rewrite one array's metadata as a hostile store would (chunks left as they are)."""
+    meta_file = store / "p" / array / "zarr.json"
+    meta = json.loads(meta_file.read_text())
+    if codecs is not None:
+        meta["codecs"] = codecs
+    if data_type is not None:
+        meta["data_type"] = data_type
+    meta_file.write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("codecs, data_type, match", [
+    ([{"name": "numcodecs.pickle", "configuration": {"protocol": 5}}], None,
+     "codec 'numcodecs.pickle' is not allowed"),
+    ([{"name": "sharding_indexed", "configuration": {
+        "chunk_shape": [1, 1, 1, 1], "codecs": [{"name": "bytes"}, {"name": "pickle"}],
+        "index_codecs": [{"name": "bytes"}]}}], None, "codec 'pickle' is not allowed"),
+    (None, "object", "data type 'object' is not allowed"),
+    (None, {"name": "variable_length_bytes"}, "data type 'variable_length_bytes'"),
+])
+def test_store_with_unsafe_codec_or_dtype_refused_before_decoding(tmp_path, small_partition,
+                                                                  codecs, data_type, match):
+    import pickle
+
+    store = write_store({"p": small_partition}, tmp_path / "a.zarr")
+    marker = tmp_path / "code-ran"
+    # every VISIBILITY chunk replaced by a payload that runs code when unpickled
+    payload = pickle.dumps(_Payload(marker))
+    chunks = [f for f in (store / "p" / "VISIBILITY").rglob("*") if f.is_file() and f.name != "zarr.json"]
+    assert chunks
+    for f in chunks:
+        f.write_bytes(payload)
+    _poison(store, "VISIBILITY", codecs, data_type)
+    with pytest.raises(SchemaError, match=f"p/VISIBILITY: {match}"):
+        validate_store(store)
+    with pytest.raises(SchemaError, match="VISIBILITY"):
+        open_store(store)
+    assert not marker.exists()
+    pickle.loads(payload)  # the payload is live: the check above could have failed
+    assert marker.exists()
+
+
+def test_zarr_v2_metadata_refused(tmp_path, small_partition):
+    store = write_store({"p": small_partition}, tmp_path / "a.zarr")
+    (store / "p" / ".zarray").write_text("{}")
+    with pytest.raises(SchemaError, match="zarr v2 metadata"):
+        open_store(store)
+
+
+def test_opening_and_reading_never_unpickles(tmp_path, small_partition, monkeypatch):
+    """Nothing read from the store is ever unpickled. (dask pickles and unpickles its own
+    objects while tokenizing, so only bytes this process pickled itself may be unpickled.)"""
+    import pickle
+
+    import cloudpickle
+
+    store = write_store({"p": small_partition.chunk({"time": 2})}, tmp_path / "a.zarr")
+    ours: set[bytes] = set()
+    foreign: list[bytes] = []
+    real_loads, real_dumps, real_cdumps = pickle.loads, pickle.dumps, cloudpickle.dumps
+
+    def dumps(*args, **kwargs):
+        out = real_dumps(*args, **kwargs)
+        ours.add(bytes(out))
+        return out
+
+    def cdumps(*args, **kwargs):
+        out = real_cdumps(*args, **kwargs)
+        ours.add(bytes(out))
+        return out
+
+    def loads(data, *args, **kwargs):
+        if bytes(data) not in ours:
+            foreign.append(bytes(data))
+            raise AssertionError("unpickled bytes this process did not pickle")
+        return real_loads(data, *args, **kwargs)
+
+    def forbidden(*args, **kwargs):
+        foreign.append(b"load/Unpickler")
+        raise AssertionError("pickle.load / Unpickler used")
+
+    monkeypatch.setattr(pickle, "dumps", dumps)
+    monkeypatch.setattr(cloudpickle, "dumps", cdumps)
+    monkeypatch.setattr(pickle, "loads", loads)
+    monkeypatch.setattr(pickle, "load", forbidden)
+    monkeypatch.setattr(pickle, "Unpickler", forbidden)
+    ds = open_store(store)["p"].to_dataset().compute(scheduler="synchronous")
+    assert foreign == []
+    xr.testing.assert_identical(ds, small_partition)
+
+
 def test_existing_output_needs_overwrite(tmp_path, small_partition):
     out = tmp_path / "a.zarr"
     write_store({"p": small_partition}, out)

@@ -254,11 +254,94 @@ def _read_root_attrs(path: Path) -> dict[str, Any]:
     return doc.get("attributes", {}) or {}
 
 
+#: zarr codecs a store may use: plain byte layouts, checksums, compressors and UTF-8 strings.
+#: None of them can run code on decoding; anything else (a pickle or other object codec, a
+#: codec this xstack does not know) makes a store unsafe to open and is refused.
+SAFE_CODECS = frozenset({"bytes", "transpose", "crc32c", "blosc", "zstd", "gzip", "vlen-utf8",
+                         "sharding_indexed"})
+#: zarr data types a store may use (numeric, boolean, strings, numpy times); never object.
+SAFE_DATA_TYPES = frozenset({
+    "bool", "int8", "int16", "int32", "int64", "uint8", "uint16", "uint32", "uint64",
+    "float16", "float32", "float64", "complex64", "complex128", "string",
+    "fixed_length_utf32", "numpy.datetime64", "numpy.timedelta64"})
+
+
+def _codec_names(codecs: Any, where: str) -> Iterator[str]:
+    """Every codec name in a zarr v3 codec list, including those nested in sharding."""
+    if not isinstance(codecs, list):
+        raise SchemaError(f"{where}: malformed codec list")
+    for codec in codecs:
+        name = codec.get("name") if isinstance(codec, Mapping) else codec
+        if not isinstance(name, str):
+            raise SchemaError(f"{where}: malformed codec {codec!r}")
+        yield name
+        conf = codec.get("configuration", {}) if isinstance(codec, Mapping) else {}
+        for key in ("codecs", "index_codecs"):
+            if isinstance(conf, Mapping) and key in conf:
+                yield from _codec_names(conf[key], where)
+
+
+def check_array_metadata(path: str | os.PathLike) -> int:
+    """Check every array of a store on disk uses only safe data types and codecs.
+
+    Metadata are read as plain JSON before zarr or xarray see the store, so a store from
+    elsewhere that asks for a pickle (or any unknown) codec, an object data type or zarr v2
+    metadata is refused before anything could be decoded. Chunk directories are not listed.
+
+    Returns
+    -------
+    int
+        The number of arrays checked.
+
+    Raises
+    ------
+    SchemaError
+        Naming the first offending array and what is wrong with it.
+    """
+    root = Path(path)
+    n_arrays = 0
+    todo = [root]
+    while todo:
+        group = todo.pop()
+        for v2 in (".zarray", ".zgroup", ".zattrs", ".zmetadata"):
+            if (group / v2).exists():
+                raise SchemaError(f"{group}: zarr v2 metadata ({v2}) in a zarr v3 store")
+        for child in sorted(group.iterdir()):
+            meta_file = child / "zarr.json"
+            if not child.is_dir() or not meta_file.is_file():
+                continue
+            where = f"{root}/{child.relative_to(root)}"
+            try:
+                meta = json.loads(meta_file.read_text())
+            except (OSError, ValueError) as exc:
+                raise SchemaError(f"{where}: corrupt zarr.json ({exc})") from None
+            if not isinstance(meta, Mapping):
+                raise SchemaError(f"{where}: corrupt zarr.json (not a JSON object)")
+            if meta.get("node_type") == "group":
+                todo.append(child)
+                continue
+            if meta.get("node_type") != "array":
+                raise SchemaError(f"{where}: unknown zarr node type {meta.get('node_type')!r}")
+            n_arrays += 1
+            dtype = meta.get("data_type")
+            dname = dtype.get("name") if isinstance(dtype, Mapping) else dtype
+            if dname not in SAFE_DATA_TYPES:
+                raise SchemaError(f"{where}: data type {dname!r} is not allowed in an xstack "
+                                  "store (numeric, bool and string arrays only)")
+            for name in _codec_names(meta.get("codecs", []), where):
+                if name not in SAFE_CODECS:
+                    raise SchemaError(f"{where}: codec {name!r} is not allowed in an xstack "
+                                      f"store (only {', '.join(sorted(SAFE_CODECS))})")
+    return n_arrays
+
+
 def validate_store(path: str | os.PathLike) -> dict[str, Any]:
     """Check the root attributes of an xstack store on disk; return them.
 
     A store left behind by an interrupted write never validates: the ``xstack_complete``
-    flag is written last, and stores are renamed into place only after that.
+    flag is written last, and stores are renamed into place only after that. Every array's
+    metadata is checked too (:func:`check_array_metadata`): only safe codecs and data types,
+    so a store that passes can be opened and read without running any code.
     """
     path = Path(path)
     if not path.exists():
@@ -273,6 +356,7 @@ def validate_store(path: str | os.PathLike) -> dict[str, Any]:
         raise SchemaError(f"{path}: schema version {version!r} is not supported")
     if attrs.get("xstack_kind") not in KINDS:
         raise SchemaError(f"{path}: unknown store kind {attrs.get('xstack_kind')!r}")
+    check_array_metadata(path)
     return attrs
 
 

@@ -45,11 +45,21 @@ def padding_mask(vis: np.ndarray, weight: np.ndarray, flag: np.ndarray) -> np.nd
     return np.all(flag, axis=axes) & np.all(weight == 0, axis=axes) & np.all(np.isnan(vis), axis=axes)
 
 
-def _load(arr: Any) -> np.ndarray:
-    """Compute one (dask) block in this thread."""
-    if hasattr(arr, "compute"):
-        return np.asarray(arr.compute(scheduler="synchronous"))
-    return np.asarray(arr)
+def _load(arr: Any, where: str = "") -> np.ndarray:
+    """Compute one (dask) block in this thread.
+
+    A chunk that cannot be decoded (a damaged store) becomes an :class:`XstackError` naming
+    it, instead of whichever exception the codec happens to raise.
+    """
+    try:
+        if hasattr(arr, "compute"):
+            return np.asarray(arr.compute(scheduler="synchronous"))
+        return np.asarray(arr)
+    except (MemoryError, XstackError):
+        raise
+    except Exception as exc:
+        raise XstackError(f"{where}: cannot be read, the store is damaged ({type(exc).__name__}: "
+                          f"{exc})".replace("\n", " ")) from None
 
 
 def _integration_time(ds: Any) -> float:
@@ -109,7 +119,7 @@ def _fill_gaps(items: dict[int, Any], dummy: Any) -> list[Any]:
     return [items.get(k, dummy) for k in range(max(items) + 1)]
 
 
-def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> int:
+def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any, where: str = "") -> int:
     """Append the rows of one partition, chunk by chunk; return the number of rows written."""
     vis_da, w_da, f_da, uvw_da = ds["VISIBILITY"].data, ds["WEIGHT"].data, ds["FLAG"].data, ds["UVW"].data
     times = np.asarray(ds["time"].values, dtype=np.float64)
@@ -130,12 +140,15 @@ def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any) -> i
         for j in range(len(b_edges) - 1):
             bs = slice(b_edges[j], b_edges[j + 1])
             # one array at a time, so only one chunk is being decoded at any moment
-            vis = _load(vis_da[ts, bs])
-            weight = _load(w_da[ts, bs])
-            flag = _load(f_da[ts, bs])
-            uvw = _load(uvw_da[ts, bs])
-            centroid = _load(centroid_da[ts, bs]) if centroid_da is not None else None
-            exposure = _load(exposure_da[ts, bs]) if exposure_da is not None else None
+            at = f"time {ts.start}:{ts.stop}, baseline_id {bs.start}:{bs.stop}"
+            vis = _load(vis_da[ts, bs], f"{where}/VISIBILITY ({at})")
+            weight = _load(w_da[ts, bs], f"{where}/WEIGHT ({at})")
+            flag = _load(f_da[ts, bs], f"{where}/FLAG ({at})")
+            uvw = _load(uvw_da[ts, bs], f"{where}/UVW ({at})")
+            centroid = _load(centroid_da[ts, bs], f"{where}/TIME_CENTROID ({at})") \
+                if centroid_da is not None else None
+            exposure = _load(exposure_da[ts, bs], f"{where}/EFFECTIVE_INTEGRATION_TIME ({at})") \
+                if exposure_da is not None else None
             ti, bi = np.nonzero(~padding_mask(vis, weight, flag))
             n = ti.size
             if bar is not None:
@@ -223,8 +236,8 @@ def export_ms(
     Raises
     ------
     XstackError
-        If ``store`` is not a complete xstack store or ``out_ms`` exists without
-        ``overwrite``; nothing is written then.
+        If ``store`` is not a complete xstack store, a chunk of it cannot be decoded, or
+        ``out_ms`` exists without ``overwrite``; nothing is written then.
     """
     import casacore.tables as pt
 
@@ -257,8 +270,8 @@ def export_ms(
         bar = progress_iter(range(n_blocks), f"export {Path(out_ms).name}", enabled=progress) \
             if progress else None
         try:
-            for (_name, ds), (ddid, fid) in zip(parts, meta["part_ids"]):
-                _write_partition(tab, ds, ddid, fid, bar)
+            for (name, ds), (ddid, fid) in zip(parts, meta["part_ids"]):
+                _write_partition(tab, ds, ddid, fid, bar, f"{store}/{name}")
             tab.flush()
         finally:
             tab.close()

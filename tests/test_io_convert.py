@@ -147,6 +147,39 @@ def test_phase_centre_frame_converted_to_icrs(tmp_path):
         np.testing.assert_allclose(pcs, pc_ref, rtol=0, atol=1e-9)
 
 
+def test_weight_preference(tmp_path):
+    """WEIGHT_SPECTRUM over WEIGHT over SIGMA, shown with deliberately inconsistent columns
+    (a SIGMA of 4 would give weights 1/16; WEIGHT is set to 3)."""
+    def weights(store):
+        ds = dict(iter_partitions(open_store(store)))["spw0_field0"]
+        return ds["WEIGHT"].values, ds.attrs["weight_source"]
+
+    def edit(ms, **cols):
+        with pt.table(str(ms), readonly=False, ack=False) as t:
+            for col, value in cols.items():
+                t.putcol(col, np.full(t.getcol(col).shape, value, dtype=np.float32))
+
+    with_ws = make_test_ms(tmp_path / "ws.ms", n_times=3, missing_rows=0.0, seed=1)
+    edit(with_ws, WEIGHT=3.0, SIGMA=4.0)
+    with pt.table(str(with_ws), ack=False) as t:
+        ws = t.getcol("WEIGHT_SPECTRUM")
+    w, src = weights(convert_ms(with_ws, tmp_path / "ws.zarr"))
+    assert src == "WEIGHT_SPECTRUM"
+    np.testing.assert_array_equal(np.sort(w.ravel()), np.sort(ws.ravel()))
+    assert not np.any(w == 3.0)
+
+    row_only = make_test_ms(tmp_path / "w.ms", n_times=3, weight_spectrum=False, seed=1)
+    edit(row_only, WEIGHT=3.0, SIGMA=4.0)
+    w, src = weights(convert_ms(row_only, tmp_path / "w.zarr"))
+    assert src == "WEIGHT" and np.all(w == 3.0)
+
+    sigma_only = make_test_ms(tmp_path / "s.ms", n_times=3, weight_spectrum=False, write_weight=False,
+                              seed=1)
+    edit(sigma_only, SIGMA=4.0)
+    w, src = weights(convert_ms(sigma_only, tmp_path / "s.zarr"))
+    assert src == "SIGMA" and np.all(w == np.float32(1 / 16))
+
+
 def test_flag_row_honoured(tmp_path):
     ms = make_test_ms(tmp_path / "in.ms", flag_fraction=0.0, flag_row_fraction=0.3)
     with pt.table(str(ms), ack=False) as t:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -50,7 +50,7 @@ MAD_TO_SIGMA = 1.482602218505602
 STAMP_BEAM_AREAS = 300.0
 
 #: Default stamp (pixels) and mask radius (pixels) for an image without a restoring beam,
-#: the paper's 64 x 64 stamps and imstack's 5-pixel fallback mask.
+#: the paper's 64 x 64 stamps (made odd, 65) and imstack's 5-pixel fallback mask.
 DEFAULT_STAMP_PIXELS = 64
 DEFAULT_MASK_PIXELS = 5.0
 
@@ -120,7 +120,6 @@ class LocalNoise:
     unit: str
     name: str
     pbcor: bool | None = None
-    options: dict[str, Any] = field(default_factory=dict)
 
     def describe_bad(self, rows: np.ndarray | None = None, limit: int = 5) -> str:
         """One-line message naming the (1-based) rows without an estimate, with the reason."""
@@ -233,7 +232,8 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
     stamp_size
         Stamp side in pixels, centred on the pixel nearest to each position. Default: about
         :data:`STAMP_BEAM_AREAS` beam areas (paper §3.2), odd, at least 4 mask radii and at
-        most the image; 64 pixels if the image has no beam.
+        most the image; 65 pixels (the paper's 64, made odd so the mask is centred) if the
+        image has no beam.
     mask_radius_arcsec
         Radius of the central circle left out of sigma_k (the stacked source and its main
         lobe). Default: the beam's major axis BMAJ (paper §3.2); 5 pixels without a beam.

@@ -102,3 +102,35 @@ def test_image_cli_mask_limits_components(store, tmp_path):
     model = read_image(tmp_path / "m.model.fits")[0]
     assert np.count_nonzero(model) > 0
     assert np.all(model[8:, :] == 0) and np.all(model[:, 8:] == 0)
+
+
+def test_image_cli_mosaic(tmp_path, capsys):
+    """Two spectral windows x two pointings: one linear mosaic; CLEAN refused, nothing written."""
+    from xstack.imaging.image import group_pointings, make_image, select_partitions
+
+    src = offset_position(3.0, 2.0)
+    parts = {}
+    for field, dx in enumerate((-8.0, 8.0)):
+        centre = offset_position(dx, 0.0)
+        for spw, f0 in enumerate((1.3e9, 1.5e9)):
+            parts[f"spw{spw}_field{field}"] = make_sky_partition(
+                [(src[0], src[1], 0.5)], n_time=4, n_ant=8, freq0=f0, phase_center=centre,
+                field_id=field, seed=spw + 2 * field).assign_attrs(spectral_window_id=spw)
+    write_store(parts, tmp_path / "m.zarr")
+    groups = group_pointings(select_partitions(tmp_path / "m.zarr", allow_mosaic=True))
+    assert [sorted(n for n, _ in g) for _, g in groups] == [
+        ["spw0_field0", "spw1_field0"], ["spw0_field1", "spw1_field1"]]
+    out = tmp_path / "mos.fits"
+    assert main(["image", str(tmp_path / "m.zarr"), str(out), "--size", "64", "--cell", "2",
+                 "--json", "--no-progress"]) == 0
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["n_pointings"] == 2
+    data = read_image(out)[0]
+    ref = make_image(tmp_path / "m.zarr", size=64, cell_arcsec=2.0)
+    np.testing.assert_allclose(data, ref.image, rtol=1e-6, atol=1e-7)  # float32 FITS
+    assert fits.getheader(out)["XSMOSAIC"] == 2
+    bad = tmp_path / "clean.fits"
+    assert main(["image", str(tmp_path / "m.zarr"), str(bad), "--size", "64", "--cell", "2",
+                 "--niter", "10", "--no-progress"]) == 1
+    assert "different phase centres" in capsys.readouterr().err
+    assert not list(tmp_path.glob("clean*"))

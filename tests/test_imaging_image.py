@@ -150,16 +150,23 @@ def test_adjoint_on_store_geometry(rng, point_partition):
     assert abs(lhs - rhs) < 1e-6 * abs(lhs)
 
 
-def test_mosaic_and_bad_input_errors(tmp_path):
+def test_mosaic_selection_and_bad_input_errors(tmp_path):
+    from xstack.imaging.clean import clean_data
+    from xstack.imaging.image import Imager
+
     a = make_sky_partition(n_time=2, n_ant=4, field_id=0)
     b = make_sky_partition(n_time=2, n_ant=4, field_id=1,
                            phase_center=(PHASE_CENTER[0] + 1e-4, PHASE_CENTER[1]))
     path = tmp_path / "m.zarr"
     write_store({"spw0_field0": a, "spw0_field1": b}, path)
+    # CLEAN needs one pointing; the dirty imager makes a linear mosaic instead
     with pytest.raises(XstackError, match="different phase centres"):
-        make_image(path, size=32, cell_arcsec=1.0)
+        clean_data(path, size=32, cell_arcsec=1.0, niter=5)
+    with pytest.raises(XstackError, match="different phase centres"):
+        Imager(path, size=32, cell_arcsec=1.0)
+    assert make_image(path, size=32, cell_arcsec=1.0).header["XSMOSAIC"] == 2
     r = make_image(path, size=32, cell_arcsec=1.0, partitions="*field1")
-    assert r.partitions == ("spw0_field1",)
+    assert r.partitions == ("spw0_field1",) and "XSMOSAIC" not in r.header
     assert r.wcs.wcs.crval[0] == pytest.approx(math.degrees(PHASE_CENTER[0] + 1e-4))
     with pytest.raises(XstackError, match="no partition matches"):
         make_image(path, size=32, cell_arcsec=1.0, partitions="nope")
@@ -173,6 +180,130 @@ def test_mosaic_and_bad_input_errors(tmp_path):
     flagged = a.assign(FLAG=(a.FLAG.dims, np.ones(a.FLAG.shape, bool)))
     with pytest.raises(XstackError, match="no unflagged"):
         make_image(flagged, size=32, cell_arcsec=1.0)
+
+
+def _alma_mosaic(src_flux, src, offsets, noise=0.0, n_time=6, n_ant=10, seed=0):
+    """ALMA pointings at ``offsets`` (arcsec east, north) seeing ``src`` through their beam."""
+    from xstack.beams import standard_beam
+    from xstack.coords import angular_separation
+
+    beam = standard_beam("ALMA", 12.0)
+    freq = 230e9 + 100e6 * np.arange(3)
+    parts = {}
+    for field, (dx, dy) in enumerate(offsets):
+        centre = offset_position(dx, dy)
+        att = beam(angular_separation(*centre, *src), freq)[None, :]
+        parts[f"spw0_field{field}"] = make_sky_partition(
+            [(src[0], src[1], src_flux)], n_time=n_time, n_ant=n_ant, freq0=230e9,
+            chan_width=100e6, n_chan=3, telescope="ALMA", dish=12.0, max_baseline=400.0,
+            phase_center=centre, field_id=field, attenuation=att, noise=noise, seed=seed + field)
+    return parts, beam, freq
+
+
+def test_linear_mosaic_equals_direct_fourier_sum(tmp_path):
+    """Each pointing's direct Fourier sum at every mosaic pixel's sky direction, combined as
+    sum A_p D_p / sum A_p^2 with plain numpy, equals the mosaic (ducc0 + uvw rotation)."""
+    from astropy.wcs import WCS
+
+    from xstack.coords import SPEED_OF_LIGHT
+
+    src = offset_position(9.0, 5.0)
+    offsets = [(-12.0, 0.0), (12.0, 0.0), (0.0, 20.0)]
+    parts, beam, freq = _alma_mosaic(1.0, src, offsets, noise=0.2, n_time=3, n_ant=6)
+    write_store(parts, tmp_path / "m.zarr")
+    size, cell = 48, 1.5
+    res = make_image(tmp_path / "m.zarr", size=size, cell_arcsec=cell, epsilon=1e-9, pb_cutoff=0.05)
+    assert res.header["XSMOSAIC"] == 3
+    # the mosaic centre: the mean direction of the pointings, at the reference pixel
+    centre = offset_position(0.0, 20.0 / 3)
+    ra_c, dec_c = res.wcs.pixel_to_world_values(size // 2, size // 2)
+    assert angular_separation_deg(ra_c, dec_c, *np.degrees(centre)) * 3600 < 0.02
+    # every pixel's sky direction from astropy's own WCS of the written file
+    wcs = WCS(res.header).celestial
+    yy, xx = np.mgrid[0:size, 0:size]
+    ra, dec = (np.radians(a) for a in wcs.pixel_to_world_values(xx, yy))
+    num = np.zeros((size, size))
+    den = np.zeros((size, size))
+    best = np.zeros((size, size))
+    for ds in parts.values():
+        ra0, dec0 = ds.attrs["phase_center"]
+        l = np.cos(dec) * np.sin(ra - ra0)
+        m = np.sin(dec) * np.cos(dec0) - np.cos(dec) * np.sin(dec0) * np.cos(ra - ra0)
+        n1 = np.sqrt(1 - l * l - m * m) - 1
+        uvw = ds.UVW.values.reshape(-1, 3)
+        w = ds.WEIGHT.values.reshape(uvw.shape[0], freq.size, 2).sum(axis=-1)
+        v = (ds.VISIBILITY.values * ds.WEIGHT.values).reshape(uvw.shape[0], freq.size, 2).sum(-1)
+        d = np.zeros((size, size))
+        for c, f in enumerate(freq):
+            ph = (uvw[:, 0, None, None] * l + uvw[:, 1, None, None] * m
+                  + uvw[:, 2, None, None] * n1) * (f / SPEED_OF_LIGHT)
+            d += np.einsum("r,ryx->yx", v[:, c].real, np.cos(2 * np.pi * ph)) \
+                + np.einsum("r,ryx->yx", v[:, c].imag, np.sin(2 * np.pi * ph))
+        d /= w.sum()
+        a = beam(np.arccos(np.clip(np.sin(dec) * np.sin(dec0)
+                                   + np.cos(dec) * np.cos(dec0) * np.cos(ra - ra0), -1, 1)),
+                 res.frequency)
+        num += a * d
+        den += a * a
+        best = np.maximum(best, a)
+    expect = np.where(best >= 0.05, num / den, np.nan)
+    assert np.array_equal(np.isnan(res.image), np.isnan(expect))
+    ok = np.isfinite(expect)
+    assert ok.sum() > 0.5 * ok.size
+    assert np.max(np.abs(res.image[ok] - expect[ok])) < 1e-5 * np.nanmax(np.abs(expect))
+    np.testing.assert_allclose(res.pb, np.sqrt(den / 3), rtol=1e-6)  # equal pointing weights
+
+
+def angular_separation_deg(ra1, dec1, ra2, dec2):
+    from xstack.coords import angular_separation
+
+    return np.degrees(angular_separation(*np.radians([ra1, dec1, ra2, dec2])))
+
+
+def test_linear_mosaic_recovers_flux_between_pointings(tmp_path):
+    """A source where each pointing sees it at ~half power: the mosaic shows its true flux at
+    its catalog position, and pointings with more weight count more."""
+    size, cell = 96, 0.5
+    # put the source on a pixel centre of the mosaic grid (centre = mean of the pointings)
+    offsets = [(-10.0, 0.0), (10.0, 0.0)]
+    probe = make_image(_alma_mosaic(0.0, offset_position(0, 0), offsets)[0], size=size,
+                       cell_arcsec=cell)
+    ra, dec = probe.wcs.pixel_to_world_values(size // 2 - 6, size // 2 + 4)
+    src = (math.radians(ra), math.radians(dec))
+    parts, beam, freq = _alma_mosaic(0.05, src, offsets)
+    # the second pointing has 4x the weight (half the noise) and sees a different flux if
+    # its beam were wrong: a wrong weight or beam would not give 0.05
+    w = parts["spw0_field1"].WEIGHT.values * 4
+    parts["spw0_field1"] = parts["spw0_field1"].assign(WEIGHT=(parts["spw0_field1"].WEIGHT.dims, w))
+    res = make_image(parts, size=size, cell_arcsec=cell)
+    # away from the well-covered area 1/A amplifies the sidelobes: look where pb > 0.5
+    y, x = np.unravel_index(np.nanargmax(np.where(res.pb > 0.5, res.image, -np.inf)),
+                            res.image.shape)
+    assert (y, x) == (size // 2 + 4, size // 2 - 6)
+    assert res.image[y, x] == pytest.approx(0.05, rel=1e-4)
+    world = res.wcs.pixel_to_world(x, y)
+    assert world.separation(SkyCoord(src[0] * u.rad, src[1] * u.rad)).arcsec < 0.01
+    weights = [p["noise_weight"] for p in res.extra["pointings"]]
+    assert weights[1] / weights[0] == pytest.approx(4.0, rel=1e-9)
+    # each pointing alone sees the flux attenuated by its own beam at the source
+    for name in ("spw0_field0", "spw0_field1"):
+        single = make_image(parts, size=size, cell_arcsec=cell, partitions=name)
+        sep = single.wcs.pixel_to_world(size // 2, size // 2).separation(world)
+        att = float(np.mean(beam(sep.rad, freq)))
+        assert 0.3 < att < 0.95
+        # (each pointing's own grid is centred on it: find the source there)
+        sx, sy = single.wcs.world_to_pixel(world)
+        assert single.image[int(round(float(sy))), int(round(float(sx)))] == \
+            pytest.approx(0.05 * att, rel=0.02)
+    assert res.psf[size // 2, size // 2] == pytest.approx(1.0, abs=1e-6)
+    # the flat-noise image is the mosaic times the effective beam
+    ok = np.isfinite(res.image)
+    np.testing.assert_allclose(res.extra["uncorrected"][ok], (res.image * res.pb)[ok], rtol=1e-9)
+    # NaN exactly where no beam reaches the 0.1 cutoff: with weights 1:4, pb^2 = 0.2 A_0^2 +
+    # 0.8 A_1^2, so pb < 0.1 sqrt(0.2) is surely outside and pb >= 0.1 surely inside
+    assert np.isnan(res.image[res.pb < 0.1 * math.sqrt(0.2) * 0.999]).all()
+    assert np.isfinite(res.image[res.pb >= 0.1]).all()
+    assert np.isnan(res.image).any()
 
 
 def test_mfs_over_spectral_windows_is_weighted_combination(tmp_path):

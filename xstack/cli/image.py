@@ -16,7 +16,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "image", help="make a (CLEANed) Stokes I image of a store",
         description="Image a store with ducc0 (multi-frequency synthesis, Stokes I from the "
                     "parallel hands). Writes OUT.fits (restored image if --niter > 0, else the "
-                    "dirty image) beside OUT.psf.fits, OUT.residual.fits and OUT.model.fits.")
+                    "dirty image) beside OUT.psf.fits, OUT.residual.fits and OUT.model.fits. "
+                    "Partitions with different phase centres (a mosaic) give a primary-beam "
+                    "corrected linear mosaic of dirty images (no CLEAN).")
     p.add_argument("data", help="input store (.zarr)")
     p.add_argument("out", help="output image (.fits)")
     p.add_argument("--size", type=int, required=True, help="image size in pixels (even, >= 32)")
@@ -37,7 +39,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--epsilon", type=float, default=1e-6, help="gridder accuracy (default 1e-6)")
     p.add_argument("--partition", action="append", default=None, metavar="NAME",
                    help="partition name or glob pattern to image (repeatable; default all; "
-                        "a mosaic must be imaged one pointing at a time)")
+                        "CLEAN needs a single pointing)")
+    p.add_argument("--pb-cutoff", type=float, default=None,
+                   help="mosaic: NaN where no pointing's primary beam reaches this power "
+                        "(default the beam's cutoff, 0.1)")
     p.add_argument("--png", action="store_true", help="also write OUT.png (quick-look)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
@@ -109,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
                   robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
                   epsilon=args.epsilon, partitions=args.partition,
                   progress=not args.no_progress)
+    if args.pb_cutoff is not None and not 0 < args.pb_cutoff < 1:
+        raise XstackError("--pb-cutoff must be between 0 and 1")
     if not Path(args.data).exists():
         raise XstackError(f"{args.data}: no such store")
     mask = None
@@ -126,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         residual, model = cres.residual, cres.model
         n_components = cres.n_components
     else:
-        result = make_image(args.data, **common)
+        result = make_image(args.data, pb_cutoff=args.pb_cutoff, **common)
         # the residual of a dirty image is the (primary-beam uncorrected) dirty image
         residual = result.extra.get("uncorrected", result.image)
         model = np.zeros_like(residual)
@@ -149,5 +156,6 @@ def run(args: argparse.Namespace) -> int:
             "frequency_hz": result.frequency, "n_visibilities": result.n_visibilities,
             "partitions": list(result.partitions), "weighting": result.weighting,
             "cell_arcsec": result.cell_arcsec, "size": [result.image.shape[1], result.image.shape[0]],
+            "n_pointings": int(result.header.get("XSMOSAIC", 1)),
         })
     return 0

@@ -113,15 +113,17 @@ def _as_partitions(data: Any) -> list[tuple[str, xr.Dataset]]:
         return list(iter_partitions(open_store(data)))
     if isinstance(data, dict):
         return list(data.items())
+    if isinstance(data, (list, tuple)) and all(isinstance(p, tuple) and len(p) == 2 for p in data):
+        return list(data)  # (name, Dataset) pairs, as select_partitions returns them
     raise XstackError(f"cannot image a {type(data).__name__}: give a store path, DataTree or Dataset")
 
 
-def select_partitions(data: Any, partitions: str | Sequence[str] | None = None
-                      ) -> list[tuple[str, xr.Dataset]]:
+def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, *,
+                      allow_mosaic: bool = False) -> list[tuple[str, xr.Dataset]]:
     """Partitions of ``data`` whose names match ``partitions`` (names or glob patterns).
 
-    All selected partitions must share one phase centre (one pointing); a mosaic must be
-    imaged pointing by pointing (``partitions="*_field3*"``).
+    Unless ``allow_mosaic``, all selected partitions must share one phase centre (one
+    pointing): CLEAN's major cycles work on a single pointing.
     """
     parts = _as_partitions(data)
     if partitions is not None:
@@ -131,14 +133,63 @@ def select_partitions(data: Any, partitions: str | Sequence[str] | None = None
             raise XstackError(f"no partition matches {pats} (available: "
                               f"{', '.join(n for n, _ in parts)})")
         parts = chosen
-    ra0, dec0 = parts[0][1].attrs["phase_center"]
-    for name, ds in parts[1:]:
-        ra, dec = ds.attrs["phase_center"]
-        if angular_separation(ra0, dec0, ra, dec) > 1e-3 * _ARCSEC:
-            raise XstackError(
-                f"partitions {parts[0][0]} and {name} have different phase centres (a mosaic): "
-                "image one pointing at a time (--partition / partitions=)")
+    if not allow_mosaic and len(group_pointings(parts)) > 1:
+        raise XstackError(
+            f"the selected partitions have {len(group_pointings(parts))} different phase centres "
+            "(a mosaic): CLEAN works on one pointing at a time (--partition / partitions=); "
+            "a dirty linear mosaic of all pointings is made without --niter")
     return parts
+
+
+def group_pointings(parts: Sequence[tuple[str, xr.Dataset]]
+                    ) -> list[tuple[tuple[float, float], list[tuple[str, xr.Dataset]]]]:
+    """Partitions grouped by phase centre (within 1 mas), in order of first appearance.
+
+    Returns
+    -------
+    list of ((ra, dec) radians, [(name, Dataset), ...])
+    """
+    groups: list[tuple[tuple[float, float], list[tuple[str, xr.Dataset]]]] = []
+    for name, ds in parts:
+        ra, dec = (float(x) for x in ds.attrs["phase_center"])
+        for centre, members in groups:
+            if angular_separation(centre[0], centre[1], ra, dec) <= 1e-3 * _ARCSEC:
+                members.append((name, ds))
+                break
+        else:
+            groups.append(((ra, dec), [(name, ds)]))
+    return groups
+
+
+def uvw_rotation(from_center: tuple[float, float], to_center: tuple[float, float]) -> np.ndarray:
+    """3x3 matrix taking (u, v, w) referred to ``from_center`` to ``to_center`` (radians).
+
+    The rows of R(c) are the unit vectors u (east), v (north), w (towards c) in equatorial
+    (x, y, z), so that u l + v m + w n = b . s for any direction s (docs/conventions.md).
+    """
+    def frame(ra: float, dec: float) -> np.ndarray:
+        sa, ca, sd, cd = math.sin(ra), math.cos(ra), math.sin(dec), math.cos(dec)
+        return np.array([[-sa, ca, 0.0], [-sd * ca, -sd * sa, cd], [cd * ca, cd * sa, sd]])
+
+    return frame(*to_center) @ frame(*from_center).T
+
+
+def rephase(uvw: np.ndarray, vis: np.ndarray | None, frequency: np.ndarray,
+            from_center: tuple[float, float], to_center: tuple[float, float]
+            ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Refer (R, 3) uvw and (R, nchan) visibilities to a new phase centre, exactly.
+
+    V' = V exp(+2 pi i (w - w') / lambda), uvw' = R uvw: a source then appears as
+    S exp(+2 pi i (u' l' + v' m' + w' (n' - 1)) / lambda) with (l', m', n') relative to the
+    new centre, so the gridder images directly on the new centre's SIN grid.
+    """
+    from xstack.coords import SPEED_OF_LIGHT
+
+    new = uvw @ uvw_rotation(from_center, to_center).T
+    if vis is None:
+        return np.ascontiguousarray(new), None
+    dw = (uvw[:, 2] - new[:, 2])[:, None] * (np.asarray(frequency)[None, :] / SPEED_OF_LIGHT)
+    return np.ascontiguousarray(new), vis * np.exp(2j * np.pi * dw)
 
 
 def _parallel_hands(ds: xr.Dataset, name: str) -> list[int]:
@@ -327,7 +378,8 @@ class Imager:
     def __init__(self, data: Any, *, size: int | Sequence[int], cell_arcsec: float,
                  weighting: str = "natural", robust: float = 0.0, wterm: bool = True,
                  epsilon: float = 1e-6, partitions: str | Sequence[str] | None = None,
-                 nthreads: int = 0, progress: bool = False) -> None:
+                 nthreads: int = 0, progress: bool = False,
+                 image_center: tuple[float, float] | None = None) -> None:
         if weighting not in WEIGHTINGS:
             raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
         if not (1e-12 < epsilon < 0.1):
@@ -339,7 +391,12 @@ class Imager:
         self.weighting, self.robust = weighting, float(robust)
         self.wterm, self.epsilon, self.nthreads = bool(wterm), float(epsilon), int(nthreads)
         self.progress = progress
-        self.phase_center = tuple(float(x) for x in self.parts[0][1].attrs["phase_center"])
+        #: the data's phase centre (the pointing: primary-beam centre)
+        self.data_center = tuple(float(x) for x in self.parts[0][1].attrs["phase_center"])
+        #: the image's centre (reference pixel); visibilities are rephased to it if it differs
+        self.phase_center = self.data_center if image_center is None else \
+            (float(image_center[0]), float(image_center[1]))
+        self._shift = angular_separation(*self.data_center, *self.phase_center) > 1e-3 * _ARCSEC
         self.density: np.ndarray | None = None
         self.f2 = 0.0
         #: visibilities (rows x channels) gathered per ducc0 call
@@ -349,7 +406,8 @@ class Imager:
 
     # -- iteration
     def _iter(self, need_vis: bool, description: str) -> Iterator[tuple[np.ndarray, ...]]:
-        """Yield (uvw, freq, imaging weight, vis) batches of about ``batch_visibilities``.
+        """Yield (uvw, freq, imaging weight, vis, data weight) batches of about
+        ``batch_visibilities`` visibilities.
 
         Small store chunks are concatenated before gridding: every ducc0 call pays for the
         FFTs of the whole (oversampled) grid, so fewer, larger calls are much faster.
@@ -365,7 +423,8 @@ class Imager:
             uvw = np.concatenate([b[0] for b in buf])
             w = np.concatenate([b[1] for b in buf])
             v = np.concatenate([b[2] for b in buf]) if need_vis else None
-            return uvw, cur, w, v
+            raw = np.concatenate([b[3] for b in buf])
+            return uvw, cur, w, v, raw
 
         for name, ds, ts, bs in progress_iter(jobs, description, self.progress, total=len(jobs)):
             names = ["UVW", "WEIGHT", "FLAG"] + (["VISIBILITY"] if need_vis else [])
@@ -375,6 +434,9 @@ class Imager:
             if uvw.shape[0] == 0:
                 continue
             freq = np.asarray(ds["frequency"].values, dtype=np.float64)
+            if self._shift:
+                uvw, v = rephase(uvw, v, freq, self.data_center, self.phase_center)
+            raw = w
             if self.density is not None:
                 dens = kernels.lookup_weight_grid(self.density, uvw, freq, self.cell)
                 w = kernels.imaging_weights(w, dens, self.weighting, self.f2)
@@ -382,7 +444,7 @@ class Imager:
                 yield flush()
                 buf, nbuf = [], 0
             cur = freq
-            buf.append((uvw, w, v))
+            buf.append((uvw, w, v, raw))
             nbuf += w.size
             if nbuf >= self.batch_visibilities:
                 yield flush()
@@ -397,6 +459,8 @@ class Imager:
             for ts, bs in _blocks(ds):
                 uvw, wt, fl = _read(ds, ts, bs, ["UVW", "WEIGHT", "FLAG"])
                 u, w, _ = rows_of_block(uvw, wt, fl, self.pols[name])
+                if self._shift:
+                    u, _ = rephase(u, None, freq, self.data_center, self.phase_center)
                 kernels.accumulate_weight_grid(grid, u, freq, w, self.cell)
         self.density = grid
         self.f2 = kernels.briggs_f2(grid, self.robust) if self.weighting == "briggs" else 0.0
@@ -408,13 +472,16 @@ class Imager:
         psf = np.zeros((self.ny, self.nx))
         sum_w = 0.0
         sum_wf = 0.0
+        var_num = 0.0
         nvis = 0
         fmin, fmax = np.inf, -np.inf
-        for uvw, freq, w, v in self._iter(True, "imaging"):
+        for uvw, freq, w, v, raw in self._iter(True, "imaging"):
             kw = dict(epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads)
             dirty += grid_visibilities(uvw, freq, v, w, self.ny, self.nx, self.cell, **kw)
             psf += grid_visibilities(uvw, freq, np.ones_like(v), w, self.ny, self.nx, self.cell, **kw)
             sum_w += float(w.sum())
+            # data weights are 1/sigma^2: the image noise is sum w_img^2 sigma^2 / (sum w_img)^2
+            var_num += float(np.sum(np.where(raw > 0, w * w / np.where(raw > 0, raw, 1.0), 0.0)))
             sum_wf += float((w.sum(axis=0) * freq).sum())
             nvis += int(np.count_nonzero(w))
             used = freq[np.any(w > 0, axis=0)]
@@ -424,8 +491,10 @@ class Imager:
             raise XstackError("no unflagged parallel-hand visibilities with positive weight to image")
         self.sum_weights = sum_w
         return {"dirty": dirty / sum_w, "psf": psf / sum_w, "sum_weights": sum_w,
+                "noise_variance": var_num / sum_w**2,
                 "frequency": sum_wf / sum_w, "n_visibilities": nvis,
-                "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0}
+                "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0,
+                "fmin": float(fmin), "fmax": float(fmax)}
 
     def image_of_model(self, model: np.ndarray) -> np.ndarray:
         """Dirty image of a model image's predicted visibilities (same weights), normalised.
@@ -434,7 +503,7 @@ class Imager:
         """
         out = np.zeros((self.ny, self.nx))
         kw = dict(epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads)
-        for uvw, freq, w, _ in self._iter(False, "major cycle"):
+        for uvw, freq, w, _, _ in self._iter(False, "major cycle"):
             vis = predict(model, self.cell_arcsec, uvw, freq, **kw)
             out += grid_visibilities(uvw, freq, vis, w, self.ny, self.nx, self.cell, **kw)
         return out / self.sum_weights
@@ -448,7 +517,13 @@ class Imager:
             if "DISH_DIAMETER" in ds else 25.0
         beam = standard_beam(str(ds.attrs.get("telescope_name", "")), dish)
         l, m = kernels.pixel_lm(self.ny, self.nx, self.cell)
-        theta = np.arcsin(np.clip(np.hypot(l, m), 0.0, 1.0))
+        if self._shift:
+            from xstack.coords import lm_to_radec
+
+            ra, dec = lm_to_radec(l, m, *self.phase_center)
+            theta = angular_separation(ra, dec, *self.data_center)
+        else:
+            theta = np.arcsin(np.clip(np.hypot(l, m), 0.0, 1.0))
         return beam(theta, frequency), beam.cutoff
 
     def result(self, image: np.ndarray, psf: np.ndarray, stats: dict[str, Any],
@@ -482,8 +557,13 @@ class Imager:
 def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weighting: str = "natural",
                robust: float = 0.0, wterm: bool = True, pbcor: bool = False, epsilon: float = 1e-6,
                partitions: str | Sequence[str] | None = None, nthreads: int = 0,
-               progress: bool = False) -> ImageResult:
+               progress: bool = False, mosaic_center: tuple[float, float] | None = None,
+               pb_cutoff: float | None = None) -> ImageResult:
     """Dirty image and PSF (Stokes I, multi-frequency synthesis) of a store.
+
+    Partitions that share a phase centre (e.g. several spectral windows of one pointing) are
+    imaged jointly. Partitions with different phase centres (a mosaic) give a linear mosaic
+    (:func:`make_mosaic`).
 
     Parameters
     ----------
@@ -505,23 +585,135 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     pbcor
         Divide the image by the primary beam (the telescope's standard beam at the weighted
         mean frequency); pixels below the beam cutoff become NaN. The PSF is never corrected.
+        A mosaic is always primary-beam corrected.
     epsilon
         ducc0 gridder accuracy (relative). >= 1e-4 runs in single precision.
     partitions
-        Partition names or glob patterns to image (default: all). All selected partitions must
-        share one phase centre: image a mosaic pointing by pointing.
+        Partition names or glob patterns to image (default: all).
     nthreads
         ducc0 threads (0 = all cores).
     progress
         Progress bar on stderr.
+    mosaic_center
+        (ra, dec) radians of a mosaic's image centre (default: the mean direction of the
+        pointings). Ignored for a single pointing.
+    pb_cutoff
+        Mosaic only: pixels where no pointing's primary beam reaches this power are NaN
+        (default: the telescope beam's cutoff, 0.1).
 
     Returns
     -------
     ImageResult
     """
-    imager = Imager(data, size=size, cell_arcsec=cell_arcsec, weighting=weighting, robust=robust,
-                    wterm=wterm, epsilon=epsilon, partitions=partitions, nthreads=nthreads,
+    parts = select_partitions(data, partitions, allow_mosaic=True)
+    if len(group_pointings(parts)) > 1:
+        return make_mosaic(parts, size=size, cell_arcsec=cell_arcsec, weighting=weighting,
+                           robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
+                           progress=progress, center=mosaic_center, pb_cutoff=pb_cutoff)
+    imager = Imager(dict(parts), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
+                    robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
                     progress=progress)
     stats = imager.dirty_and_psf()
     return imager.result(stats["dirty"], stats["psf"], stats, pbcor=pbcor)
 
+
+def mean_direction(centres: Sequence[tuple[float, float]]) -> tuple[float, float]:
+    """(ra, dec) radians of the normalised mean unit vector of ``centres`` (radians)."""
+    c = np.asarray(centres, dtype=np.float64)
+    xyz = np.column_stack([np.cos(c[:, 1]) * np.cos(c[:, 0]), np.cos(c[:, 1]) * np.sin(c[:, 0]),
+                           np.sin(c[:, 1])]).sum(axis=0)
+    norm = float(np.linalg.norm(xyz))
+    if not norm > 1e-12:
+        raise XstackError("the pointings have no mean direction; give mosaic_center")
+    xyz /= norm
+    return float(math.atan2(xyz[1], xyz[0]) % (2 * math.pi)), float(math.asin(xyz[2]))
+
+
+def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
+                weighting: str = "natural", robust: float = 0.0, wterm: bool = True,
+                epsilon: float = 1e-6, partitions: str | Sequence[str] | None = None,
+                nthreads: int = 0, progress: bool = False,
+                center: tuple[float, float] | None = None,
+                pb_cutoff: float | None = None) -> ImageResult:
+    """Linear mosaic of the pointings of a store on one SIN grid (primary-beam corrected).
+
+    Each pointing p (the partitions sharing a phase centre) is imaged on the common grid,
+    its visibilities rephased to the mosaic centre with rotated uvw (exact, so the grid is a
+    true SIN projection about the centre for any mosaic size). With D_p its normalised dirty
+    image, A_p its primary-beam power at the pixel and W_p = 1 / sigma_p^2 its image noise
+    weight::
+
+        I = sum_p W_p A_p D_p / sum_p W_p A_p^2
+
+    (the minimum-variance combination; W_p is equal for equal pointings, giving
+    sum A_p D_p / sum A_p^2). Pixels where no pointing's beam reaches ``pb_cutoff`` are NaN.
+
+    Returns
+    -------
+    ImageResult
+        ``image``: the mosaic, Jy/beam, PB-corrected. ``pb``: the effective beam
+        sqrt(sum W_p A_p^2 / sum W_p): the noise at a pixel is the joint natural noise
+        divided by it. ``psf``: the noise-weighted mean of the pointings' PSFs (all pointings
+        of one observation share nearly the same uv coverage). ``extra``: ``uncorrected``
+        (the flat-noise image sum W_p A_p D_p / sqrt(sum W_p sum W_p A_p^2)), ``pointings``.
+    """
+    parts = select_partitions(data, partitions, allow_mosaic=True)
+    groups = group_pointings(parts)
+    if center is None:
+        center = mean_direction([c for c, _ in groups])
+    center = (float(center[0]), float(center[1]))
+    num = den = psf = None
+    total_w = sum_w = sum_wf = 0.0
+    nvis = 0
+    fmin, fmax = np.inf, -np.inf
+    best = None
+    cutoff = pb_cutoff
+    pointings = []
+    imager = None
+    for pc, members in groups:
+        imager = Imager(dict(members), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
+                        robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
+                        progress=progress, image_center=center)
+        try:
+            st = imager.dirty_and_psf()
+        except XstackError as exc:  # a fully flagged pointing adds nothing
+            if "no unflagged" not in str(exc):
+                raise
+            continue
+        a_p, beam_cut = imager.primary_beam(st["frequency"])
+        cutoff = beam_cut if pb_cutoff is None else cutoff
+        w_p = 1.0 / st["noise_variance"] if st["noise_variance"] > 0 else st["sum_weights"]
+        if num is None:
+            num, den, psf = np.zeros_like(a_p), np.zeros_like(a_p), np.zeros_like(a_p)
+            best = np.zeros_like(a_p)
+        num += w_p * a_p * st["dirty"]
+        den += w_p * a_p * a_p
+        psf += w_p * st["psf"]
+        best = np.maximum(best, a_p)
+        total_w += w_p
+        sum_w += st["sum_weights"]
+        sum_wf += st["frequency"] * st["sum_weights"]
+        nvis += st["n_visibilities"]
+        fmin, fmax = min(fmin, st["fmin"]), max(fmax, st["fmax"])
+        pointings.append({"phase_center": pc, "partitions": [n for n, _ in members],
+                          "noise_weight": w_p, "sum_weights": st["sum_weights"]})
+    if num is None or imager is None:
+        raise XstackError("no unflagged parallel-hand visibilities with positive weight to image")
+    cutoff = max(float(cutoff), 1e-6)
+    good = (best >= cutoff) & (den > 0)
+    image = np.where(good, num / np.where(den > 0, den, 1.0), np.nan)
+    pb = np.sqrt(den / total_w)
+    flat = np.where(den > 0, num / np.sqrt(total_w * np.where(den > 0, den, 1.0)), 0.0)
+    stats = {"frequency": sum_wf / sum_w, "sum_weights": sum_w, "n_visibilities": nvis,
+             "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0}
+    psf = psf / total_w
+    # the header and beam come from the last imager (same grid and centre for every pointing)
+    imager.parts = parts
+    res = imager.result(image, psf, stats, pbcor=False)
+    res.header["XSPBCOR"] = True
+    res.header["XSMOSAIC"] = (len(pointings), "linear mosaic of this many pointings")
+    res.header["XSPBCUT"] = cutoff
+    res.pb = pb
+    res.partitions = tuple(n for n, _ in parts)
+    res.extra.update({"uncorrected": flat, "pointings": pointings, "pb_cutoff": cutoff})
+    return res

@@ -1,9 +1,9 @@
 """Image-stacking: dirty image of a simulated field, stamps at the targets, median and mean.
 
-Images a simulated VLA A field (ducc0 gridder), cuts 64 x 64 stamps around 200 faint
-targets and stacks them by weighted mean and by median, with nearest-pixel alignment (as in
-the paper) and with sub-pixel Fourier-shift alignment, which removes the pixelisation loss.
-Writes the stacked stamps as FITS and PNG.
+Images the simulated VLA A field of ``faint_targets.toml`` (ducc0 gridder), cuts 64 x 64
+stamps around its 200 faint targets and stacks them by weighted mean and by median, with
+nearest-pixel alignment (as in the paper) and with sub-pixel Fourier-shift alignment, which
+removes the pixelisation loss. Writes the stacked stamps as FITS and PNG.
 
 Run: ``python examples/image_stacking.py [OUTDIR]`` (under a minute).
 """
@@ -18,24 +18,11 @@ import numpy as np
 
 import xstack
 
-SCENE = {
-    "name": "example-imstack",
-    "array": {"config": "vla.a"},
-    "observation": {"date": "2014-01-01", "hour_angle": [-1.0, 1.0], "integration": 60.0,
-                    "time_per_pointing": 7200.0},
-    "spectral": {"centre": 1.4e9, "bandwidth": 128e6, "channels": 4,
-                 "polarizations": ["RR", "LL"]},
-    "pointings": {"mode": "single"},
-    "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.01}},
-    "populations": [
-        {"name": "targets", "count": 200, "flux": {"kind": "fixed", "value": "20uJy"},
-         "positions": {"kind": "box", "size_arcsec": [300, 300]}},
-    ],
-}
+SCENE = Path(__file__).with_name("faint_targets.toml")  # the scene, as a TOML file
 
 
 def main(outdir: Path) -> dict[str, float]:
-    sim = xstack.simulate(SCENE, outdir / "sim.zarr", seed=4, overwrite=True)
+    sim = xstack.simulate(xstack.load_scene(SCENE), outdir / "sim.zarr", seed=4, overwrite=True)
     targets = sim.catalogs["targets"]
     image = xstack.make_image(sim.store, size=1200, cell_arcsec=0.3)
     print(f"dirty image 1200 x 1200 at 0.3 arcsec, beam {image.beam[0]:.2f} x {image.beam[1]:.2f} "

@@ -1,8 +1,8 @@
 """uv-stacking of simulated faint sources, checked against the injected flux.
 
-Simulates one VLA A-configuration pointing at 1.4 GHz with 200 point sources of 20 uJy
-(each at ~0.7 sigma, invisible one by one), uv-stacks the data at their true positions
-(paper eq. 4) and fits a point and a Gaussian model to the stacked visibilities.
+Simulates the scene of ``faint_targets.toml`` (one VLA A pointing at 1.4 GHz, 200 point
+sources of 20 uJy, each at ~0.7 sigma, invisible one by one), uv-stacks the data at their
+true positions (paper eq. 4) and fits a point and a Gaussian model to the stacked visibilities.
 
 Run: ``python examples/uvstack_simulated.py [OUTDIR]`` (about half a minute).
 """
@@ -17,25 +17,11 @@ import numpy as np
 
 import xstack
 
-SCENE = {
-    "name": "example-uvstack",
-    "array": {"config": "vla.a"},
-    "observation": {"date": "2014-01-01", "hour_angle": [-1.0, 1.0], "integration": 60.0,
-                    "time_per_pointing": 7200.0},
-    "spectral": {"centre": 1.4e9, "bandwidth": 128e6, "channels": 4,
-                 "polarizations": ["RR", "LL"]},
-    "pointings": {"mode": "single"},
-    # only the effects this scene calls for are computed
-    "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.01}},
-    "populations": [
-        {"name": "targets", "count": 200, "flux": {"kind": "fixed", "value": "20uJy"},
-         "positions": {"kind": "box", "size_arcsec": [300, 300]}},
-    ],
-}
+SCENE = Path(__file__).with_name("faint_targets.toml")  # the scene, as a TOML file
 
 
 def main(outdir: Path) -> dict[str, float]:
-    sim = xstack.simulate(SCENE, outdir / "sim.zarr", seed=3, overwrite=True)
+    sim = xstack.simulate(xstack.load_scene(SCENE), outdir / "sim.zarr", seed=3, overwrite=True)
     targets = sim.catalogs["targets"]
     print(f"simulated {sim.n_visibilities:,} visibilities, {len(targets)} targets")
 

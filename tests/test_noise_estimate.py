@@ -90,6 +90,52 @@ def test_mc_injection_equals_injecting_into_the_data():
         tsep = angular_separation(fra[:, None], fdec[:, None], ra[None], dec[None])
         assert tsep.min() >= min_sep
     assert np.allclose(np.sort(res.injected_flux_jy[0]), np.linspace(1, 2, 8))
+    # this data's UVW are antenna differences: the check above ran the antenna path
+    assert res.extra["engine"] == "antenna" and res.extra["antenna_phase_error_rad"] < 1e-11
+
+
+def test_engines_agree_and_fallback_is_recorded():
+    """Antenna and per-row kernels agree (flags, NaN UVW, uv cut, profiles); inconsistent
+    UVW make ``auto`` fall back per block, observably."""
+    ra, dec = _targets(n=12)
+    pos = (np.degrees(ra), np.degrees(dec))
+    ds, _, _ = noise_field(3, n_ant=8, n_time=6, extent_m=20e3)
+    ds = ds.copy(deep=True)
+    rng = np.random.default_rng(2)
+    ds["FLAG"].values[rng.uniform(size=ds["FLAG"].shape) < 0.1] = True
+    ds["FLAG"].values[1, 4] = True
+    ds["UVW"].values[1, 4] = np.nan  # a flagged row without coordinates
+    ds["FLAG"].values[3] = True  # a whole integration
+    # 1 cm on one baseline of one integration: inconsistent with any antenna UVW
+    bad = ds.copy(deep=True)
+    bad["UVW"].values[4, 27, 0] += 0.01
+    ds, bad = ds.chunk({"time": 2}), bad.chunk({"time": 2})  # three blocks
+    kw = dict(method="mc", realizations=6, flux=1e-3, seed=1, profile_bins=4, uvmin="300m")
+    row = estimate_noise(ds, pos, engine="row", **kw)
+    ant = estimate_noise(ds, pos, **kw)
+    assert row.extra["engine"] == "row" and "antenna_phase_error_rad" not in row.extra
+    assert ant.extra["engine"] == "antenna" and ant.extra["engine_blocks"] == {"antenna": 3,
+                                                                               "row": 0}
+    scale = np.abs(row.values).max()
+    np.testing.assert_allclose(ant.values, row.values, rtol=1e-9, atol=1e-9 * scale)
+    np.testing.assert_allclose(ant.injected, row.injected, rtol=1e-12)
+    np.testing.assert_allclose(ant.profile["values"], row.profile["values"], rtol=1e-9,
+                               atol=1e-9 * np.nanmax(np.abs(row.profile["values"])))
+    rnd = estimate_noise(ds, pos, method="random", realizations=6, seed=1, engine="antenna")
+    rnd_row = estimate_noise(ds, pos, method="random", realizations=6, seed=1, engine="row")
+    np.testing.assert_allclose(rnd.values, rnd_row.values, rtol=1e-9,
+                               atol=1e-9 * np.abs(rnd_row.values).max())
+    # that block falls back to the per-row kernel
+    mixed = estimate_noise(bad, pos, **kw)
+    assert mixed.extra["engine"] == "mixed"
+    assert mixed.extra["engine_blocks"] == {"antenna": 2, "row": 1}
+    assert "phase error" in mixed.extra["engine_fallback"]
+    np.testing.assert_allclose(mixed.values, estimate_noise(bad, pos, engine="row", **kw).values,
+                               rtol=1e-9, atol=1e-9 * scale)
+    with pytest.raises(XstackError, match="engine='antenna' is not valid"):
+        estimate_noise(bad, pos, engine="antenna", **kw)
+    with pytest.raises(XstackError, match="unknown engine"):
+        estimate_noise(ds, pos, engine="gpu", **kw)
 
 
 def test_mc_finds_bias_from_bright_residual():

@@ -31,6 +31,10 @@ from xstack.noise import kernels
 from xstack.noise.positions import ARCSEC, random_positions
 
 METHODS = ("analytic", "mc", "random", "bootstrap")
+ENGINES = ("auto", "antenna", "row")
+#: engine="auto" takes the antenna path only with at least this many used rows per used
+#: antenna and time: the antenna phasors cost about what the sine/cosine of a row saves
+MIN_ROWS_PER_ANTENNA = 2.0
 WEIGHTINGS = ("none", "pb", "column")
 
 
@@ -146,6 +150,11 @@ class _Pointing:
             self.beam = standard_beam(str(ds.attrs["telescope_name"]), dish, model=primary_beam,
                                       cutoff=cutoff)
         self.fmid = float(np.mean(self.freq))
+        # rows of a block are (time, baseline): the antenna ids allow the per-antenna kernel
+        self.antennas = None
+        if "baseline_antenna1_id" in ds and "baseline_antenna2_id" in ds:
+            self.antennas = (np.asarray(ds["baseline_antenna1_id"].values),
+                             np.asarray(ds["baseline_antenna2_id"].values))
 
     def attenuation(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """(nchan, K) power attenuation of positions in this pointing."""
@@ -192,7 +201,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                    weighting: str = "pb", primary_beam: str | PrimaryBeam | None = None,
                    pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None,
                    field_radius_arcsec: float | None = None, profile_bins: int = 0,
-                   psf: Any = None, progress: bool = False) -> NoiseResult:
+                   psf: Any = None, progress: bool = False, engine: str = "auto",
+                   antenna_tol_rad: float = kernels.ANTENNA_TOL_RAD) -> NoiseResult:
     """Estimate the noise and bias of the uv-stacked flux at ``positions``.
 
     Parameters
@@ -245,6 +255,18 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         bins of uv distance.
     progress
         Progress bar on stderr.
+    engine
+        Kernel of ``mc``/``random`` (the results agree to float64 rounding): ``auto``
+        (default) uses per-antenna phasors for every block whose baseline UVW are differences
+        of per-antenna UVW to ``antenna_tol_rad`` and the per-row kernel for the others;
+        ``antenna`` requires the antenna path everywhere (error otherwise); ``row`` forces
+        the per-row kernel. ``analytic`` and ``bootstrap`` always use the per-row kernel.
+        The engine used is reported in ``extra["engine"]`` (``antenna``, ``row`` or
+        ``mixed``), with the block counts and the reason of the first fallback.
+    antenna_tol_rad
+        Largest accepted phase error (radians, at the highest frequency and the farthest
+        position) of the per-antenna factorisation; see
+        :meth:`xstack.noise.kernels.AntennaLayout.phase_error`.
 
     Returns
     -------
@@ -262,6 +284,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         raise XstackError(f"unknown domain {domain!r} (use uv or image)")
     if weighting not in WEIGHTINGS:
         raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
+    if engine not in ENGINES:
+        raise XstackError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
     realizations = int(realizations)
     if method != "analytic" and realizations < 2:
         raise XstackError(f"need at least 2 realisations to estimate a scatter, got {realizations}")
@@ -367,6 +391,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     wk_t = np.zeros((len(pointings), n_t))        # w_k of the targets per pointing
     wtot_p = np.zeros(len(pointings))
     any_data = False
+    engine_blocks = {"antenna": 0, "row": 0}
+    engine_info: dict[str, Any] = {}
     from xstack._progress import progress_iter
 
     for ip, pt in enumerate(pointings):
@@ -407,8 +433,9 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                 bins = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, nbins - 1)
                 bins = np.where(wsum > 0, bins, -1)
                 wbin += np.bincount(bins[bins >= 0], wsum[bins >= 0], nbins)
-            d, mdl, pr, prm = kernels.group_sums(uvw, pt.freq, vis_w, wsum, l, m, n1, coef, b,
-                                                 starts, bins=bins, nbins=nbins)
+            d, mdl, pr, prm = _group_sums(pt, uvw, vis_w, wsum, l, m, n1, coef, b, starts,
+                                          bins, nbins, engine, antenna_tol_rad, engine_blocks,
+                                          engine_info)
             num_p += d
             num_m_p += mdl
             prof_p += pr
@@ -436,6 +463,11 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                              "n_pointings": len(pointings), "seed": int(seed)}
     if min_sep is not None:
         extra["min_separation_arcsec"] = float(min_sep / ARCSEC)
+    if method in ("mc", "random"):
+        extra["engine"] = ("mixed" if all(engine_blocks.values()) else
+                           "antenna" if engine_blocks["antenna"] else "row")
+        extra["engine_blocks"] = dict(engine_blocks)
+        extra.update(engine_info)
     # ---- results -------------------------------------------------------------------------
     if method in ("analytic", "bootstrap"):
         target_flux = _combine_targets(X_t, inside_t, wtot_p, wk_t, np.ones(n_t))
@@ -491,6 +523,33 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                        n_real, vals, injected, target_flux, int(sizes[0]), profile=profile,
                        extra=extra, positions_deg=pos,
                        injected_flux_jy=scale * np.stack(groups_s[:n_real]))
+
+
+def _group_sums(pt: _Pointing, uvw, vis_w, wsum, l, m, n1, coef, b, starts, bins, nbins,
+                engine: str, tol_rad: float, blocks: dict[str, int], info: dict[str, Any]):
+    """Group sums of one block by the antenna path when valid (or forced), else per row."""
+    if engine != "row":
+        try:
+            if pt.antennas is None:
+                raise kernels.FactorisationError("no baseline antenna ids in the data")
+            layout = kernels.antenna_layout(uvw, *pt.antennas, row_ok=np.any(wsum > 0, axis=1))
+            if engine == "auto" and layout.rows_per_antenna < MIN_ROWS_PER_ANTENNA:
+                raise kernels.FactorisationError(
+                    f"{layout.rows_per_antenna:.2f} baselines per antenna: no gain")
+            err = layout.phase_error(l, m, n1, pt.freq)
+            out = kernels.group_sums_antenna(layout, pt.freq, vis_w, wsum, l, m, n1, coef, b,
+                                             starts, bins=bins, nbins=nbins, tol_rad=tol_rad)
+        except kernels.FactorisationError as exc:
+            if engine == "antenna":
+                raise XstackError(f"engine='antenna' is not valid for {pt.name}: {exc}") from exc
+            info.setdefault("engine_fallback", f"{pt.name}: {exc}")
+        else:
+            blocks["antenna"] += 1
+            info["antenna_phase_error_rad"] = max(info.get("antenna_phase_error_rad", 0.0), err)
+            return out
+    blocks["row"] += 1
+    return kernels.group_sums(uvw, pt.freq, vis_w, wsum, l, m, n1, coef, b, starts, bins=bins,
+                              nbins=nbins)
 
 
 def _combine_targets(X: np.ndarray, inside: np.ndarray, wtot: np.ndarray, w: np.ndarray,

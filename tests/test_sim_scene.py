@@ -188,6 +188,45 @@ def test_sampling_follows_the_counts():
     assert stats.kstest(x, cdf).pvalue > 1e-3
 
 
+def test_tabulated_counts_sample_their_distribution():
+    """kind = "table": a tabulated dN/dS (log-log interpolated) of S^-2 between 0.1 and 10 mJy
+    is sampled with the analytic power-law CDF (KS test)."""
+    s = np.geomspace(1e-4, 1e-2, 7)
+    d = FluxDistribution("table", s_min=1e-4, s_max=1e-2, flux=list(s), dnds=list(3.0 * s**-2.0))
+    d.validate("t")
+    x = d.sample(20000, np.random.default_rng(8))
+    assert x.min() >= 1e-4 and x.max() <= 1e-2
+
+    def cdf(v):
+        return (1e-4**-1 - v**-1) / (1e-4**-1 - 1e-2**-1)
+
+    assert stats.kstest(x, cdf).pvalue > 1e-3
+    with pytest.raises(XstackError, match="t.flux/dnds"):
+        FluxDistribution("table", s_min=1e-4, s_max=1e-2, flux=[1e-3, 1e-4], dnds=[1, 1]).validate("t")
+
+
+def test_rectangular_mosaic_layout():
+    """A 40" x 20" rectangular grid at 10" spacing: 5 x 3 pointings, 10" apart, centred."""
+    from xstack.coords import angular_separation, radec_to_lmn
+    from xstack.sim.simulate import simulate_partitions
+
+    scene = {"array": {"config": "alma.cycle1.2"},
+             "observation": {"integration": 6.0, "time_per_pointing": 6.0, "hour_angle": [-1, 1]},
+             "spectral": {"centre": 230e9, "bandwidth": 1e9, "channels": 1, "polarizations": ["XX"]},
+             "pointings": {"mode": "rectangular", "centre": [57.3, -30.0], "size_arcsec": [40, 20],
+                           "spacing_arcsec": 10.0}}
+    parts, _ = simulate_partitions(scene)
+    pc = np.array([ds.attrs["phase_center"] for ds in parts.values()])
+    assert len(pc) == 15
+    l, m, _, _ = radec_to_lmn(pc[:, 0], pc[:, 1], np.radians(57.3), np.radians(-30.0))
+    x, y = np.degrees(l) * 3600, np.degrees(m) * 3600
+    assert sorted(set(np.round(x, 6))) == [-20.0, -10.0, 0.0, 10.0, 20.0]
+    assert sorted(set(np.round(y, 6))) == [-10.0, 0.0, 10.0]
+    d = angular_separation(pc[:, None, 0], pc[:, None, 1], pc[None, :, 0], pc[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    assert np.allclose(np.degrees(d.min(axis=1)) * 3600, 10.0, rtol=1e-6)
+
+
 def test_bondi_counts_and_limit():
     d = FluxDistribution("bondi2008", s_min=1e-7, s_max=1.0)
     area = (1800 / 206264.806) ** 2

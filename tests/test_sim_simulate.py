@@ -112,6 +112,31 @@ def test_primary_beam_attenuation_at_offsets_and_channels():
             assert expect[-1] < expect[0] < 1  # narrower beam at the higher channels
 
 
+@pytest.mark.parametrize("model", ["airy", "gaussian"])
+def test_airy_and_gaussian_beams_against_their_formulas(model):
+    """effects.primary_beam = airy | gaussian (12 m ALMA dishes), pointings 0-15" from the
+    source: |V| equals the textbook power pattern in every channel."""
+    from scipy.special import j1
+
+    offs = np.array([0.0, 5.0, 10.0, 15.0])
+    scene = _scene([_pop("s", [RA0], [DEC0], 1.0)],
+                   pointings={"mode": "list", "positions": [[RA0, DEC0 + d / 3600] for d in offs]},
+                   effects={"primary_beam": model, "pb_cutoff": 0.01})
+    parts, _ = simulate_partitions(scene)
+    for p, ds in enumerate(parts.values()):
+        lam = 299_792_458.0 / ds.frequency.values
+        theta = np.radians(offs[p] / 3600)
+        if model == "airy":
+            x = np.pi * 12.0 * np.sin(theta) / lam
+            expect = np.ones_like(x) if theta == 0 else (2 * j1(x) / x) ** 2
+        else:
+            expect = np.exp(-4 * np.log(2) * (theta / (1.13 * lam / 12.0)) ** 2)
+        amp = np.abs(ds.VISIBILITY.values[..., 0])
+        np.testing.assert_allclose(amp, np.broadcast_to(expect, amp.shape), rtol=1e-9, atol=0)
+        if p:
+            assert 0.05 < expect[-1] < expect[0] < 1
+
+
 def test_noise_has_the_requested_sigma():
     sigma = 0.37
     scene = _scene([], effects={"noise": {"sigma": sigma}})

@@ -9,11 +9,16 @@ The kernel's cost is independent of the visibility values, so the timing runs on
 visibilities with the real uv-tracks. By default it runs on a fraction of the integrations
 (evenly spread over the 9.4 h, so the uv-coverage and phase ranges are the full ones) and
 extrapolates linearly in the number of rows (the cost is exactly proportional to rows x
-positions). ``--fraction 1`` runs the full size.
+positions). ``--full`` adds the full-size run.
+
+Both kernels are measured on the same fraction in the same session (``--engines``):
+``antenna`` (per-antenna phasors, the default path for such data) and ``row`` (one phasor
+per baseline row, the fallback).
 
 Usage::
 
-    python benchmarks/bench_noise.py [--fraction 0.03125] [--write docs/bench/noise.md]
+    python benchmarks/bench_noise.py [--fraction 0.03125] [--engines antenna,row] [--full]
+        [--write docs/bench/noise.md]
 """
 
 from __future__ import annotations
@@ -71,7 +76,7 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def bench_full(fraction: float, realizations: int, npos: int) -> dict:
+def bench_full(fraction: float, realizations: int, npos: int, engine: str = "auto") -> dict:
     from xstack.noise.estimate import estimate_noise
 
     n_time_full = 3384
@@ -82,11 +87,12 @@ def bench_full(fraction: float, realizations: int, npos: int) -> dict:
     nvis = ds["VISIBILITY"].size
     # warm-up: compile the numba kernels outside the timing
     estimate_noise(ds.isel(time=slice(0, 2)), (ra[:20], dec[:20]), method="mc", realizations=2,
-                   flux=1e-6)
+                   flux=1e-6, engine=engine)
+    load = os.getloadavg()[0]
     t0 = time.perf_counter()
     c0 = time.process_time()
     res = estimate_noise(ds, (ra, dec), method="mc", realizations=realizations, flux=2.96e-6,
-                         seed=3)
+                         seed=3, engine=engine)
     wall = time.perf_counter() - t0
     cpu = time.process_time() - c0
     full_rows = 351 * n_time_full
@@ -99,7 +105,9 @@ def bench_full(fraction: float, realizations: int, npos: int) -> dict:
             "positions_per_realisation": res.n_positions, "realizations": realizations,
             "ns_per_row_position": wall / (nrow * realizations * res.n_positions) * 1e9,
             "extrapolated_full_s": wall * full_rows / nrow, "noise_jy": res.noise_jy,
-            "bias_jy": res.bias_jy, "peak_rss_mib": peak_rss_mib()}
+            "bias_jy": res.bias_jy, "peak_rss_mib": peak_rss_mib(), "load": load,
+            "engine": res.extra["engine"],
+            "phase_error_rad": res.extra.get("antenna_phase_error_rad")}
 
 
 def bench_accuracy(rs=(10, 30, 100, 300), n_sets: int = 6) -> list[dict]:
@@ -150,6 +158,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fraction", type=float, default=1 / 32,
                     help="fraction of the 3384 integrations to run (1 = full size)")
+    ap.add_argument("--engines", default="antenna,row",
+                    help="engines timed at --fraction, in this order")
+    ap.add_argument("--full", action="store_true",
+                    help="also run the full size (all 3384 integrations, engine auto)")
     ap.add_argument("--realizations", type=int, default=100)
     ap.add_argument("--positions", type=int, default=900)
     ap.add_argument("--skip-accuracy", action="store_true")
@@ -162,24 +174,36 @@ def main() -> None:
              f"numba {numba.__version__} with {numba.get_num_threads()} threads. Other engineers' "
              "jobs were running on the same 2 cores at the same time (load average "
              f"{os.getloadavg()[0]:.1f} at the start), so wall times are pessimistic.", ""]
-    r = bench_full(args.fraction, args.realizations, args.positions)
+    runs = [(args.fraction, e) for e in args.engines.split(",") if e]
+    if args.full:
+        runs.append((1.0, "auto"))
     lines += [
-        "## 100 realisations x 900 positions, paper type 6 (VLA A, 10 ch, 2 pols, 9.4 h)", "",
-        "| integrations | rows | visibilities | realisations x positions | wall [s] | CPU [s] | "
-        "wall ns per row x position | full size (1.19e6 rows, 2.38e7 vis) from wall [s] | "
-        "CPU ns per row x position | full size from CPU time / threads (uncontended) [s] | "
-        "peak RSS [MiB] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-        f"| {r['n_time']} of 3384 | {r['rows']:,} | {r['visibilities']:,} | {r['realizations']} x "
-        f"{r['positions_per_realisation']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-        f"{r['ns_per_row_position']:.2f} | {r['extrapolated_full_s']:.0f} "
-        f"({r['extrapolated_full_s'] / 60:.1f} min) | {r['cpu_ns_per_row_position']:.2f} | "
-        f"{r['cpu_extrapolated_full_s']:.0f} ({r['cpu_extrapolated_full_s'] / 60:.1f} min) | "
-        f"{r['peak_rss_mib']:.0f} |", "",
-        "STACKER (paper): ~8 h on a CPU, 135 s on a GPU for the same problem.",
-        f"Noise estimate of this run: {r['noise_jy'] * 1e6:.3f} uJy, bias "
-        f"{r['bias_jy'] * 1e6:.3f} uJy (noise-only data, 2.96 uJy injected).", ""]
+        f"## {args.realizations} realisations x {args.positions} positions, paper type 6 (VLA A, "
+        "10 ch, 2 pols, 9.4 h)", "",
+        "| engine | integrations | rows | visibilities | realisations x positions | load avg "
+        "at start | wall [s] | CPU [s] | CPU ns per row x position | full size from CPU time "
+        "/ threads (uncontended) | full size from wall | peak RSS [MiB] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
+    results = []
+    for fraction, engine in runs:
+        r = bench_full(fraction, args.realizations, args.positions, engine)
+        results.append(r)
+        row = (f"| {r['engine']} | {r['n_time']} of 3384 | {r['rows']:,} | "
+               f"{r['visibilities']:,} | {r['realizations']} x {r['positions_per_realisation']} | "
+               f"{r['load']:.1f} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+               f"{r['cpu_ns_per_row_position']:.2f} | {r['cpu_extrapolated_full_s']:.0f} s "
+               f"({r['cpu_extrapolated_full_s'] / 60:.1f} min) | {r['extrapolated_full_s']:.0f} s "
+               f"({r['extrapolated_full_s'] / 60:.1f} min) | {r['peak_rss_mib']:.0f} |")
+        print(row, flush=True)
+        lines.append(row)
+    lines += ["", "STACKER (paper): ~8 h on a CPU, 135 s on a GPU for the same problem.", ""]
+    for r in results:
+        pe = r["phase_error_rad"]
+        lines.append(f"* {r['engine']}, {r['n_time']} integrations: noise "
+                     f"{r['noise_jy'] * 1e6:.4f} uJy, bias {r['bias_jy'] * 1e6:.4f} uJy"
+                     + (f", factorisation phase-error bound {pe:.1e} rad" if pe else ""))
+    lines.append("")
     if not args.skip_accuracy:
         acc = bench_accuracy()
         tab = ["## Accuracy of the noise estimate vs number of realisations", "",

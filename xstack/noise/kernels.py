@@ -19,6 +19,12 @@ Phases are computed in float64 *turns* with an exact range reduction and a branc
 polynomial for exp(-2 pi i t) (vectorisable, error < 1e-15); along evenly spaced channels
 the phasor advances by complex multiplication (recurrence), re-seeded exactly every
 ``reseed`` channels.
+
+:func:`group_sums_antenna` computes the same sums for blocks of (time, baseline) rows whose
+UVW are differences of per-antenna UVW (:func:`antenna_layout` solves and checks them): the
+phasor factorises as p = E_a1 conj(E_a2), so the phases, sine/cosine and channel recurrence
+are evaluated per antenna and time, and each (row, channel, position) costs one complex
+product. :func:`group_sums` is the per-row kernel and the fallback.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -401,6 +401,8 @@ def write_store(
     attrs: Mapping[str, Any] | None = None,
     progress: bool = False,
     description: str = "writing",
+    compute_with: Sequence[Any] = (),
+    final_attrs: Callable[[tuple[Any, ...]], Mapping[str, Any]] | None = None,
 ) -> Path:
     """Write partitions to a new store, atomically.
 
@@ -423,7 +425,16 @@ def write_store(
         Extra JSON-serialisable root attributes (provenance).
     progress
         Show a progress bar on stderr.
+    compute_with
+        Further dask collections computed in the same pass as the write, so that work they
+        share with the written arrays (e.g. the phasors of a stack and its flux sums) is done
+        once.
+    final_attrs
+        Called with the computed ``compute_with`` results; the root attributes it returns are
+        stored before the store is marked complete.
     """
+    import dask
+
     from xstack._progress import dask_progress
 
     if kind not in KINDS:
@@ -444,11 +455,14 @@ def write_store(
             "partitions": sorted(partitions),
             **(dict(attrs) if attrs else {}),
         })
+        # stale encodings (chunks of a source store) must not override dask chunks
+        writes = [ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
+                                             consolidated=False, compute=False)
+                  for name, ds in partitions.items()]
         with dask_progress(description, enabled=progress):
-            for name, ds in partitions.items():
-                # stale encodings (chunks of a source store) must not override dask chunks
-                ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
-                                           consolidated=False)
+            results = dask.compute(*writes, *compute_with)
         root = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
+        if final_attrs is not None:
+            root.attrs.update(dict(final_attrs(tuple(results[len(writes):]))))
         root.attrs["xstack_complete"] = True
     return Path(path)

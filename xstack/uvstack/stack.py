@@ -5,7 +5,8 @@ normalised phasor of equation 4 (:mod:`xstack.uvstack.kernels`), multiplies the 
 weights of each pointing by the sum of its position weights (section 3.3.2), and estimates
 the point-source flux of the stack as the weighted mean of Re V over the unflagged parallel
 hands in the uv range (section 3.3.1). The stacked data stay lazy (dask) until written or
-computed; the flux needs one pass over the data, writing ``out=`` another one.
+computed; the flux needs one pass over the data, and writing ``out=`` happens in that same
+pass (the written stack and the flux sums share each chunk's phasor).
 
 See ``docs/uvstack.md`` for the user documentation and the choices made where the paper is
 silent.
@@ -296,6 +297,31 @@ def _block_stack_vis(vis, uvw, params, frequency, engine):
     return out
 
 
+def _block_phasor_chunk(uvw, params, frequency, engine):
+    """The whole chunk's phasor (nt, nb, nchan), complex128: shared by stack and sums."""
+    nt, nb = uvw.shape[:2]
+    flat_uvw = uvw.reshape(nt * nb, 1, 3)
+    ph = np.empty((nt * nb, len(frequency)), dtype=np.complex128)
+    for start in range(0, nt * nb, _ROWS_PER_STEP):
+        sl = slice(start, start + _ROWS_PER_STEP)
+        ph[sl] = _block_phasor(flat_uvw[sl], params, frequency, engine)[:, 0]
+    return ph.reshape(nt, nb, len(frequency))
+
+
+def _block_apply_phasor(vis, ph):
+    # NaN under flags stays NaN (flagged); the output keeps the input precision
+    return (vis * ph[..., None]).astype(vis.dtype, copy=False)
+
+
+def _block_sums_with_phasor(vis, weight, flag, uvw, ph, frequency, pol_mask, lo, hi):
+    nt, nb, nc, npol = vis.shape
+    n = nt * nb
+    vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
+    mask = uv_mask(uvw.reshape(n, 3), frequency, lo, hi)
+    total = kernels.stack_sums(vis, weight, flag, ph.reshape(n, nc), pol_mask, mask)
+    return total[None, None, :]
+
+
 def _block_sums(vis, weight, flag, uvw, params, frequency, engine, pol_mask, lo, hi):
     nt, nb, nc, npol = vis.shape
     n = nt * nb
@@ -383,19 +409,37 @@ def _as_dask(ds: xr.Dataset) -> xr.Dataset:
     return ds.assign(updates) if updates else ds
 
 
-def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec) -> tuple[xr.Dataset, Any]:
+def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
+                     shared_phasor: bool = False) -> tuple[xr.Dataset, Any]:
+    """The lazy stacked partition and the lazy flux sums of ``plan``.
+
+    With ``shared_phasor`` (used when the stack is written) both come from one phasor per
+    chunk, so a write plus the flux costs one phasor evaluation instead of two; otherwise the
+    sums evaluate the phasor in small row steps themselves (less memory for a flux alone).
+    """
     ds = _as_dask(plan.ds)
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
     vis = ds["VISIBILITY"].data
     uvw = ds["UVW"].data
     params = da.from_array(plan.params, chunks=plan.params.shape, name=False)
-    stacked = da.blockwise(_block_stack_vis, "tbcp", vis, "tbcp", uvw, "tbx", params, "kz",
-                           dtype=vis.dtype, concatenate=True, frequency=freq, engine=engine)
-    sums = da.blockwise(_block_sums, "tbs", vis, "tbcp", ds["WEIGHT"].data, "tbcp",
-                        ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", dtype=np.float64,
-                        concatenate=True, new_axes={"s": 5}, adjust_chunks={"t": 1, "b": 1},
-                        frequency=freq, engine=engine, pol_mask=plan.pol_mask,
-                        lo=options["_lo"], hi=options["_hi"]).sum(axis=(0, 1))
+    sum_kwargs = dict(dtype=np.float64, concatenate=True, new_axes={"s": 5},
+                      adjust_chunks={"t": 1, "b": 1}, frequency=freq, pol_mask=plan.pol_mask,
+                      lo=options["_lo"], hi=options["_hi"])
+    if shared_phasor:
+        ph = da.blockwise(_block_phasor_chunk, "tbc", uvw, "tbx", params, "kz",
+                          dtype=np.complex128, concatenate=True, new_axes={"c": freq.size},
+                          frequency=freq, engine=engine)
+        stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph, "tbc",
+                               dtype=vis.dtype)
+        sums = da.blockwise(_block_sums_with_phasor, "tbs", vis, "tbcp", ds["WEIGHT"].data,
+                            "tbcp", ds["FLAG"].data, "tbcp", uvw, "tbx", ph, "tbc",
+                            **sum_kwargs).sum(axis=(0, 1))
+    else:
+        stacked = da.blockwise(_block_stack_vis, "tbcp", vis, "tbcp", uvw, "tbx", params, "kz",
+                               dtype=vis.dtype, concatenate=True, frequency=freq, engine=engine)
+        sums = da.blockwise(_block_sums, "tbs", vis, "tbcp", ds["WEIGHT"].data, "tbcp",
+                            ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", engine=engine,
+                            **sum_kwargs).sum(axis=(0, 1))
     out = ds.drop_encoding().copy()
     out["VISIBILITY"] = (ds["VISIBILITY"].dims, stacked, ds["VISIBILITY"].attrs)
     weight = ds["WEIGHT"].data * np.float32(plan.sum_weight)
@@ -609,29 +653,45 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     stacked: dict[str, xr.Dataset] = {}
     sums_graph = []
     for p in active:
-        ds_out, sums = _stacked_dataset(p, engine_used, center, options, ra, dec)
+        ds_out, sums = _stacked_dataset(p, engine_used, center, options, ra, dec,
+                                        shared_phasor=out is not None)
         stacked[p.name] = ds_out
         sums_graph.append(sums)
+    scale = np.array([p.sum_weight for p in active])
+    options = {k: v for k, v in options.items() if not k.startswith("_")}
+    n_positions = int(np.count_nonzero(used_pos))
+    measured: dict[str, Any] = {}
+
+    def measure(results: tuple[Any, ...]) -> dict[str, Any]:
+        sums = [np.asarray(r, dtype=np.float64) for r in results]
+        den = sum(s_p * s[1] for s_p, s in zip(scale, sums))
+        nvis = int(round(sum(s[4] for s in sums)))
+        if not den > 0 or nvis == 0:
+            raise XstackError("no unflagged visibility with positive weight in the selected "
+                              "polarizations and uv range")
+        measured.update(
+            sums=sums, n_visibilities=nvis,
+            flux_jy=float(sum(s_p * s[0] for s_p, s in zip(scale, sums)) / den),
+            flux_err_jy=float(np.sqrt(sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))) / den),
+            flux_imag_jy=float(sum(s_p * s[3] for s_p, s in zip(scale, sums)) / den))
+        return {"uvstack": {"flux_jy": measured["flux_jy"], "flux_err_jy": measured["flux_err_jy"],
+                            "n_positions": n_positions, "n_visibilities": nvis,
+                            "options": options}}
+
     try:
-        with dask_progress("uvstack: flux", enabled=progress):
-            sums = dask.compute(*sums_graph)
+        if out is None:
+            with dask_progress("uvstack: flux", enabled=progress):
+                measure(dask.compute(*sums_graph))
+        else:
+            from xstack.schema import write_store
+
+            # one pass: the flux sums share each chunk's phasor with the written stack
+            write_store(stacked, out, kind="stacked", overwrite=overwrite, progress=progress,
+                        description="uvstack", compute_with=sums_graph, final_attrs=measure)
     except MemoryError as exc:
         if engine_used != "nufft":
             raise
         raise XstackError(f"engine 'nufft': {exc}") from None
-    sums = [np.asarray(s, dtype=np.float64) for s in sums]
-    scale = np.array([p.sum_weight for p in active])
-    num = sum(s_p * s[0] for s_p, s in zip(scale, sums))
-    den = sum(s_p * s[1] for s_p, s in zip(scale, sums))
-    var = sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))
-    num_im = sum(s_p * s[3] for s_p, s in zip(scale, sums))
-    nvis = int(round(sum(s[4] for s in sums)))
-    if not den > 0 or nvis == 0:
-        raise XstackError("no unflagged visibility with positive weight in the selected "
-                          "polarizations and uv range")
-    flux = float(num / den)
-    err = float(np.sqrt(var) / den)
-    options = {k: v for k, v in options.items() if not k.startswith("_")}
 
     pos = Table(table, copy=True)
     pos["used"] = np.stack([p.used & (p.weight > 0) for p in plans], axis=1)
@@ -641,17 +701,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     if noise is not None:
         pos["sigma_local"] = noise.sigma
     pos.meta["partitions"] = [p.name for p in plans]
-    n_positions = int(np.count_nonzero(used_pos))
-    if out is not None:
-        from xstack.schema import write_store
-
-        write_store(stacked, out, kind="stacked", overwrite=overwrite, progress=progress,
-                    description="uvstack: writing",
-                    attrs={"uvstack": {"flux_jy": flux, "flux_err_jy": err,
-                                       "n_positions": n_positions, "n_visibilities": nvis,
-                                       "options": options}})
-    return StackResult(stacked=stacked, flux_jy=flux, flux_err_jy=err, n_positions=n_positions,
-                       n_visibilities=nvis, positions=pos, options=options, uncovered=uncovered,
-                       flux_imag_jy=float(num_im / den),
+    sums = measured["sums"]
+    return StackResult(stacked=stacked, flux_jy=measured["flux_jy"],
+                       flux_err_jy=measured["flux_err_jy"], n_positions=n_positions,
+                       n_visibilities=measured["n_visibilities"], positions=pos, options=options,
+                       uncovered=uncovered, flux_imag_jy=measured["flux_imag_jy"],
                        partition_sums={p.name: s.tolist() for p, s in zip(active, sums)},
                        _keepalive=keepalive)

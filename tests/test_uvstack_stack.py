@@ -141,6 +141,26 @@ def test_output_store(tmp_path, rng):
     assert res2.flux_jy == pytest.approx(res.flux_jy, rel=1e-6)
 
 
+def test_written_stack_and_flux_in_one_pass_equal_the_flux_only_pass(tmp_path, rng):
+    # with out= the flux sums share each chunk's phasor with the written stack; the result
+    # must be the flux-only pass's, and the written data the reference's
+    ds = make_stack_partition(n_time=12, n_ant=6, n_chan=4, sigma=0.5, seed=8, flag_frac=0.1)
+    ds = ds.chunk({"time": 5, "baseline_id": 7})
+    ra, dec = _offsets(VLA_CENTER, rng, 9, 0.003)
+    alone = uvstack(_tree(spw0_field0=ds), _cat(ra, dec))
+    written = uvstack(_tree(spw0_field0=ds), _cat(ra, dec), out=tmp_path / "s.zarr")
+    for key in ("flux_jy", "flux_err_jy", "flux_imag_jy", "n_visibilities"):
+        assert getattr(written, key) == pytest.approx(getattr(alone, key), rel=1e-12, abs=0)
+    ref = reference_uvstack([("spw0_field0", ds.compute())], np.degrees(ra), np.degrees(dec),
+                            weighting="pb", primary_beam="auto")
+    assert written.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-9)
+    st = open_store(tmp_path / "s.zarr")["spw0_field0"].to_dataset()
+    # stored at the input precision (complex64)
+    np.testing.assert_allclose(st["VISIBILITY"].values, ref["stacked"]["spw0_field0"], rtol=1e-5,
+                               atol=1e-6)
+    assert open_store(tmp_path / "s.zarr").attrs["uvstack"]["flux_jy"] == written.flux_jy
+
+
 def test_uncovered_positions_reported_and_all_outside_rejected():
     ds = make_stack_partition(n_time=4, n_ant=5, n_chan=2, sigma=1.0)
     far = (VLA_CENTER[0] + 0.2, VLA_CENTER[1])

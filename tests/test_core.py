@@ -37,6 +37,19 @@ def test_store_round_trip_is_identical(tmp_path, small_partition):
     xr.testing.assert_identical(back.compute(), small_partition)
 
 
+def test_partitions_come_in_sorted_order(tmp_path):
+    from conftest import make_partition
+
+    from xstack.schema import iter_partitions
+
+    names = ["spw1_field0", "spw0_field2", "spw0_field10", "spw0_field1"]
+    parts = {name: make_partition(seed=i) for i, name in enumerate(names)}
+    tree = xr.DataTree.from_dict(parts)  # insertion order, not sorted
+    assert [n for n, _ in iter_partitions(tree)] == sorted(names)
+    write_store(parts, tmp_path / "a.zarr")
+    assert [n for n, _ in iter_partitions(open_store(tmp_path / "a.zarr"))] == sorted(names)
+
+
 def test_store_holds_no_object_or_pickle_codecs(tmp_path, small_partition):
     write_store({"p": small_partition}, tmp_path / "a.zarr")
     for root, _, files in os.walk(tmp_path / "a.zarr"):

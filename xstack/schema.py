@@ -234,10 +234,14 @@ def validate_partition(ds: xr.Dataset, name: str = "partition") -> xr.Dataset:
 
 
 def iter_partitions(tree: xr.DataTree) -> Iterator[tuple[str, xr.Dataset]]:
-    """Yield ``(name, Dataset)`` for every partition (group holding VISIBILITY) of a store."""
-    for node in tree.subtree:
-        if "VISIBILITY" in node.ds.variables:
-            yield (node.path.strip("/") or "/"), node.to_dataset()
+    """Yield ``(name, Dataset)`` for every partition (group holding VISIBILITY) of a store.
+
+    Partitions come in sorted name order, whatever order the store's directory listing
+    gives, so that results (and anything seeded per partition) are reproducible.
+    """
+    nodes = [node for node in tree.subtree if "VISIBILITY" in node.ds.variables]
+    for node in sorted(nodes, key=lambda node: node.path):
+        yield (node.path.strip("/") or "/"), node.to_dataset()
 
 
 def _read_root_attrs(path: Path) -> dict[str, Any]:

@@ -27,7 +27,7 @@ import numpy as np
 from xstack._atomic import check_output
 from xstack.errors import XstackError
 from xstack.io import msread
-from xstack.io._store import region_store
+from xstack.io._store import ChunkFiles, region_store
 from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name
 
 #: Visibility columns accepted by ``datacolumn`` (any other complex array column also works).
@@ -255,14 +255,35 @@ def _placeholders(plan: _Plan, spec: msread.BlockSpec, ct: int, cb: int) -> dict
             for var, (shape, dtype) in layout.items()}
 
 
+#: Threads writing chunks while the main thread reads the next ones. python-casacore holds
+#: the GIL while it copies rows, so writers progress only in GIL-free calls (file writes,
+#: blosc): two let one chunk file's kernel write overlap another's compression.
+WRITE_THREADS = 2
+
+
+def _chunk_is_direct(rows: np.ndarray, t_index: np.ndarray, b_index: np.ndarray, n_time: int,
+                     n_baseline: int) -> bool:
+    """Whether consecutive MS rows fill every cell of an (n_time, n_baseline) block in order."""
+    n = rows.size
+    if n == 0 or n != n_time * n_baseline or int(rows[-1]) - int(rows[0]) + 1 != n:
+        return False
+    cell = t_index.astype(np.int64) * n_baseline + b_index
+    return int(cell[0]) == 0 and bool(np.all(np.diff(cell) == 1))
+
+
 def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: list[tuple[int, int]],
           progress: bool, description: str) -> None:
     """Read every chunk from the MS and write it into the store.
 
-    One thread reads (casacore) into one of two reusable buffer sets while a second thread
-    compresses and writes the previous chunk, so memory holds at most two chunks.
+    The main thread reads (casacore) into one of two reusable buffer sets while
+    :data:`WRITE_THREADS` threads write the previous chunk from the other, so memory holds
+    at most two chunks. Uncompressed arrays (VISIBILITY) of a chunk whose rows fill its
+    cells in order are written batch by batch as they are read, so reading and writing
+    overlap within a chunk too (an MS of one chunk would otherwise read, then write).
+    Chunk files are written by :class:`xstack.io._store.ChunkFiles` (the bytes zarr would
+    write, without its per-chunk overhead) where the array's codecs allow, else by zarr.
     """
-    from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import Future, ThreadPoolExecutor
 
     import zarr
 
@@ -270,35 +291,96 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
 
     total = sum(-(-p.times.size // ct) * -(-p.antenna1.size // cb) for p, (ct, cb) in zip(plans, sizes))
     bar = progress_iter(range(total), description, enabled=progress) if progress else None
+    in_flight: list[list[Future]] = [[], []]  # the writes still reading each buffer set
+    open_fds: set[int] = set()
 
-    def write(arrays: dict[str, Any], block: dict[str, np.ndarray], t0: int, t1: int, b0: int,
-              b1: int) -> None:
-        for var, values in block.items():
-            arrays[var][t0:t1, b0:b1] = values
-        if bar is not None:
+    def settle(slot: int) -> None:
+        futures, in_flight[slot] = in_flight[slot], []
+        for fut in futures:
+            fut.result()
+        if futures and bar is not None:
             bar.update(1)
 
+    def finish_raw(files: ChunkFiles, fd: int, batches: list[Future], chunk: np.ndarray,
+                   n_valid: int, n_streamed: list[int]) -> None:
+        for fut in batches:
+            fut.result()
+        try:
+            if n_streamed[0] != n_valid * chunk.shape[1]:  # not every cell came in a batch
+                files.write_at(fd, chunk[:n_valid], 0)
+            if n_valid < chunk.shape[0]:  # edge chunk: zarr pads it with the fill value
+                tail = chunk[n_valid:]
+                tail[...] = files.fill_value
+                files.write_at(fd, tail, chunk[:n_valid].nbytes)
+        finally:
+            open_fds.discard(fd)
+            os.close(fd)
+
+    def write_chunk(files: ChunkFiles, coords: tuple[int, ...], chunk: np.ndarray, n_valid: int) -> None:
+        if n_valid < chunk.shape[0]:
+            chunk[n_valid:] = files.fill_value
+        files.write(coords, chunk)
+
+    def write_zarr(array: Any, values: np.ndarray, t0: int, t1: int, b0: int, b1: int) -> None:
+        array[t0:t1, b0:b1] = values
+
     # every chunk is written exactly once, so zarr need not compare chunks with the fill value
-    with zarr.config.set({"array.write_empty_chunks": True}), ThreadPoolExecutor(1) as pool:
-        pending = None
+    with zarr.config.set({"array.write_empty_chunks": True}), ThreadPoolExecutor(WRITE_THREADS) as pool:
         try:
             for plan, spec, (ct, cb) in zip(plans, specs, sizes):
                 group = root[plan.name]
                 arrays = {var: group[var] for var in msread.BLOCK_VARS}
-                buffers = [msread.block_buffers(spec, min(ct, plan.times.size), min(cb, plan.antenna1.size))
-                           for _ in range(2)]
+                files = {var: ChunkFiles.for_array(a) for var, a in arrays.items()}
+                for slot in (0, 1):  # the previous partition's buffers are freed first
+                    settle(slot)
+                buffers = [msread.block_buffers(spec, ct, cb) for _ in range(2)]
                 for k, (t0, t1, b0, b1, rows, ti, bi) in enumerate(_blocks(plan, ct, cb)):
+                    slot = k % 2
+                    settle(slot)  # its buffer set is free again
+                    buf = buffers[slot]
+                    # chunk-shaped views of the buffers; the block is their first t1 - t0 times
+                    whole = (b1 - b0 == cb)
+                    chunks = {var: buf[var][:ct * cb * int(np.prod(a.shape[2:]))].reshape(
+                        (ct, cb, *a.shape[2:])) for var, a in arrays.items()} if whole else {}
+                    coords = {var: (t0 // ct, b0 // cb) + (0,) * (a.ndim - 2) for var, a in arrays.items()}
+                    streamed: dict[str, tuple[int, list[Future]]] = {}
+                    n_streamed = [0]  # cells handed to the writers
+                    if whole and _chunk_is_direct(rows, ti, bi, t1 - t0, b1 - b0):
+                        for var, f in files.items():
+                            if f is not None and f.raw:
+                                fd = f.open(coords[var])
+                                open_fds.add(fd)
+                                streamed[var] = (fd, [])
+
+                    def on_batch(c0: int, c1: int, streamed: dict = streamed, chunks: dict = chunks,
+                                 n_streamed: list[int] = n_streamed) -> None:
+                        n_streamed[0] += c1 - c0
+                        for var, (fd, batches) in streamed.items():
+                            flat = chunks[var]
+                            cells = flat.reshape(flat.shape[0] * flat.shape[1], -1)[c0:c1]
+                            batches.append(pool.submit(ChunkFiles.write_at, fd, cells, c0 * cells[0].nbytes))
+
                     block = msread.read_block(spec, rows, ti, bi, t1 - t0, b1 - b0, plan.times[t0:t1],
-                                              buffers=buffers[k % 2])
-                    if pending is not None:
-                        pending.result()  # the other buffer set is free again
-                    pending = pool.submit(write, arrays, block, t0, t1, b0, b1)
-                if pending is not None:
-                    pending.result()
-                    pending = None
+                                              buffers=buf, on_batch=on_batch if streamed else None)
+                    futures = in_flight[slot]
+                    for var, a in arrays.items():
+                        f = files[var]
+                        if var in streamed:
+                            fd, batches = streamed[var]
+                            futures.append(pool.submit(finish_raw, f, fd, batches, chunks[var], t1 - t0,
+                                                       n_streamed))
+                        elif f is not None and whole:
+                            futures.append(pool.submit(write_chunk, f, coords[var], chunks[var], t1 - t0))
+                        else:
+                            futures.append(pool.submit(write_zarr, a, block[var], t0, t1, b0, b1))
+            for slot in (0, 1):
+                settle(slot)
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
         finally:
-            if pending is not None:
-                pending.cancel()
+            for fd in list(open_fds):
+                os.close(fd)
             if bar is not None:
                 bar.close()
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -265,7 +266,8 @@ def block_buffers(spec: BlockSpec, n_time: int, n_baseline: int) -> dict[str, np
 
 def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: np.ndarray,
                n_time: int, n_baseline: int, times: np.ndarray,
-               buffers: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+               buffers: dict[str, np.ndarray] | None = None,
+               on_batch: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
     """Read MS rows into dense (time, baseline, ...) arrays of one block.
 
     Parameters
@@ -281,6 +283,13 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
         The block's time coordinate (TIME_CENTROID of padding cells).
     buffers
         Flat arrays from :func:`block_buffers` to fill (avoids allocating per block).
+    on_batch
+        Called as ``on_batch(start, stop)`` once cells ``start:stop`` (flat (time, baseline)
+        cell numbers of the block) hold their final values in every returned array; cells
+        are read in batches of ~:data:`READ_BATCH_BYTES`, so a caller can write them out
+        while the next batch is read. Called only for batches whose rows land on
+        consecutive cells (always the case when ``rows`` are consecutive and fill every cell
+        in order); other cells are final only when the function returns.
 
     Returns
     -------
@@ -305,6 +314,8 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
         uvw[...] = 0.0
         exposure[...] = 0.0
     centroid[...] = np.repeat(np.asarray(times, np.float64), n_baseline)
+    if not spec.has_exposure:
+        exposure[...] = 0.0
     out = {"VISIBILITY": (n_time, n_baseline, nc, npol), "WEIGHT": (n_time, n_baseline, nc, npol),
            "FLAG": (n_time, n_baseline, nc, npol), "UVW": (n_time, n_baseline, 3),
            "TIME_CENTROID": (n_time, n_baseline), "EFFECTIVE_INTEGRATION_TIME": (n_time, n_baseline)}
@@ -379,6 +390,6 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
             centroid[c] = got["TIME_CENTROID"]
         if spec.has_exposure:
             exposure[c] = got["EXPOSURE"]
-    if not spec.has_exposure:
-        exposure[...] = 0.0
+        if direct and on_batch is not None:
+            on_batch(int(c[0]), int(c[0]) + n)
     return result

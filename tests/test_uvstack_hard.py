@@ -74,6 +74,29 @@ def test_at_and_beyond_the_primary_beam_cutoff():
 
 
 @pytest.mark.parametrize("weighting", ["none", "pb"])
+def test_near_the_primary_beam_null_and_in_the_sidelobes(weighting):
+    # with no cutoff at all, a position just inside the first null is stacked (tiny A,
+    # finite A^-1), one in the first sidelobe (A ~ 0.018 > 0 for the Airy model) is not
+    ds = make_stack_partition(n_time=4, n_ant=5, n_chan=3, sigma=1.0, telescope="ALMA",
+                              dish=12.0, freq0=230e9, pols=("XX", "YY"))
+    beam = standard_beam("ALMA", 12.0)
+    freq = ds["frequency"].values
+    r_null = float(beam.first_null(freq.max()))  # the highest channel's null is innermost
+    assert float(beam(1.3 * r_null, freq.max())) > 0.01  # a sidelobe above a low cutoff
+    radii = [0.5 * r_null, 0.98 * r_null, 1.3 * r_null, 1.6 * r_null]
+    ra, dec = lm_to_radec(np.array(radii), np.zeros(4), *VLA_CENTER)
+    with pytest.warns(UserWarning, match="2 of 4"):
+        res = uvstack(_tree(ds), _cat(ra, dec), pb_cutoff=0.0, weighting=weighting)
+    assert list(res.positions["used"][:, 0]) == [True, True, False, False]
+    assert np.isfinite(res.flux_jy) and np.isfinite(res.flux_err_jy)
+    # a 1 % cutoff drops the one next to the null too, and still not the sidelobe ones
+    assert float(beam(0.98 * r_null, freq.max())) < 0.01
+    with pytest.warns(UserWarning, match="3 of 4"):
+        res01 = uvstack(_tree(ds), _cat(ra, dec), pb_cutoff=0.01, weighting=weighting)
+    assert list(res01.positions["used"][:, 0]) == [True, False, False, False]
+
+
+@pytest.mark.parametrize("weighting", ["none", "pb"])
 def test_duplicate_positions(weighting, rng):
     ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=3)
     ra, dec = lm_to_radec(rng.uniform(-3e-3, 3e-3, 5), rng.uniform(-3e-3, 3e-3, 5), *VLA_CENTER)

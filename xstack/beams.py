@@ -118,6 +118,24 @@ class PrimaryBeam:
         guess = 1.5 * SPEED_OF_LIGHT / (frequency * max(self.dish_diameter, 1.0))
         return 2.0 * brentq(lambda t: float(self(t, frequency)) - 0.5, 1e-9, 2 * guess)
 
+    def first_null(self, frequency: Any) -> np.ndarray:
+        """Angular radius (rad) of the first null, the edge of the main lobe, per frequency (Hz).
+
+        Infinite for ``gaussian`` and ``none``. Primary-beam correction divides by A, which is
+        meaningful only inside the main lobe: stacking never uses a direction beyond it, even
+        where a sidelobe of the model rises above the cutoff.
+        """
+        freq = np.asarray(frequency, dtype=np.float64)
+        if self.model in ("none", "gaussian"):
+            return np.full(freq.shape, np.inf)
+        if self.model == "vla":
+            idx = np.abs(_VLA_FREQS[:, None] - np.ravel(freq * 1e-6)[None, :]).argmin(axis=0)
+            x = np.sqrt(_VLA_NULLS[idx.reshape(freq.shape)])  # arcmin * GHz
+            return np.radians(x / (freq * 1e-9) / 60.0)
+        x0 = _airy_first_zero(self.blockage_diameter / self.dish_diameter)
+        s = x0 * SPEED_OF_LIGHT / (np.pi * self.dish_diameter * freq)
+        return np.where(s < 1.0, np.arcsin(np.minimum(s, 1.0)), np.pi / 2)
+
     def radius_at(self, level: float, frequency: float) -> float:
         """Angular radius (rad) where the attenuation first falls to ``level``."""
         from scipy.optimize import brentq
@@ -129,6 +147,16 @@ class PrimaryBeam:
         while float(self(hi, frequency)) > level and hi < np.pi / 2:
             hi *= 1.5
         return brentq(lambda t: float(self(t, frequency)) - level, 0.0, hi)
+
+
+def _airy_first_zero(eps: float) -> float:
+    """First zero x0 of the blocked-aperture voltage pattern (3.8317 for eps = 0)."""
+    from scipy.optimize import brentq
+
+    def voltage(x: float) -> float:
+        return 2.0 * j1(x) / x - eps**2 * 2.0 * j1(eps * x) / (eps * x) if eps > 0 else 2.0 * j1(x) / x
+
+    return float(brentq(voltage, 1.0, 3.8318))  # blockage moves the null inwards
 
 
 def _airy_power(theta: np.ndarray, freq: np.ndarray, diameter: float, blockage: float) -> np.ndarray:

@@ -229,7 +229,14 @@ def _beam_for(primary_beam: Any, ds: xr.Dataset, cutoff: float):
     else:
         raise XstackError(f"unknown primary beam {primary_beam!r} (use auto, airy, gaussian, none "
                           "or a FITS file)")
-    return lambda theta, l, m, f: beam(theta[:, None], np.asarray(f)[None, :])
+
+    def attenuation(theta, l, m, f):
+        f = np.asarray(f, dtype=np.float64)[None, :]
+        # beyond the first null a model sidelobe may exceed the cutoff, but dividing by it
+        # is no primary-beam correction: such a direction is outside the pointing
+        return np.where(theta[:, None] < beam.first_null(f), beam(theta[:, None], f), 0.0)
+
+    return attenuation
 
 
 def _pol_mask(ds: xr.Dataset, polarizations: Any, where: str) -> np.ndarray:
@@ -504,7 +511,9 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         ``auto`` (the telescope's standard beam, :func:`xstack.beams.standard_beam`),
         ``airy``, ``gaussian``, ``none``, or the path of a FITS primary-beam image.
     pb_cutoff
-        A position enters a pointing only if A >= pb_cutoff in every channel.
+        A position enters a pointing only if A >= pb_cutoff in every channel and it lies
+        inside the main lobe of a model beam (never beyond its first null, whatever the
+        cutoff: a sidelobe cannot be primary-beam corrected).
     uvmin, uvmax
         uv-distance range of the flux estimate (``"5000m"``, ``"23.8klambda"``; numbers
         are metres). The stacked data themselves keep every visibility.

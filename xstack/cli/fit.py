@@ -20,12 +20,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--uvmin", help="uv fit: minimum uv distance (5000m, 23.8klambda)")
     p.add_argument("--uvmax", help="uv fit: maximum uv distance")
     p.add_argument("--binned", action="store_true", help="uv fit: fit the binned uv-profile")
-    p.add_argument("--nbins", type=int, default=30, help="uv fit: bins for --binned (30)")
+    p.add_argument("--nbins", type=int, default=30,
+                   help="uv fit: bins for --binned and the --png uv-profile (30)")
     p.add_argument("--psf", help="image fit: dirty beam FITS (default: the stamp's PSF extension)")
     p.add_argument("--fit-radius", type=float, metavar="ARCSEC",
                    help="image fit: use pixels within this radius of the centre")
     p.add_argument("--noise-correlation", choices=("psf", "residual", "none"), default="psf",
                    help="image fit: pixel-noise correlation used for the errors (psf)")
+    p.add_argument("--png", metavar="PATH",
+                   help="picture of the fit: uv-profile with the model curve (uv store) or "
+                        "stamp / model / residual panels (FITS stamp)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --png")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     return p
 
@@ -40,6 +45,12 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.stacked)
     if not path.exists():
         raise XstackError(f"{path}: no such file or store")
+    if args.png:
+        from xstack._atomic import check_output
+
+        check_output(args.png, args.overwrite)  # fail before the fit, not after it
+        if args.nbins < 1:
+            raise XstackError("--nbins must be >= 1")
     if _is_fits(path):
         if args.uvmin or args.uvmax or args.binned:
             raise XstackError("--uvmin/--uvmax/--binned apply to uv-stacked stores, not FITS stamps")
@@ -56,6 +67,20 @@ def run(args: argparse.Namespace) -> int:
                      binned=args.binned, nbins=args.nbins)
     out = res.to_dict()
     out["input"] = str(path)
+    if args.png:
+        if res.domain == "uv":
+            from xstack.fit.plot import plot_uv_fit
+
+            out["png"] = plot_uv_fit(path, res, args.png, bins=args.nbins, uvmin=args.uvmin,
+                                     uvmax=args.uvmax, title=f"{path.name}: uv-domain "
+                                     f"{res.model} fit", overwrite=args.overwrite)
+        else:
+            from xstack.fit.plot import plot_image_fit
+
+            out["png"] = plot_image_fit(path, res, args.png, psf=args.psf,
+                                        fit_radius_arcsec=args.fit_radius,
+                                        title=f"{path.name}: image-domain {res.model} fit",
+                                        overwrite=args.overwrite)
     if args.json:
         emit_json(out)
         return 0
@@ -70,4 +95,6 @@ def run(args: argparse.Namespace) -> int:
               f"{res.extra['background_err_jy_per_beam']:.3g} Jy/beam")
     what = "visibilities" if res.domain == "uv" else "pixels"
     print(f"  chi2/dof  = {res.chi2_reduced:.4g} ({res.n_data} {what})")
+    if args.png:
+        print(f"  picture   = {out['png']}")
     return 0

@@ -188,6 +188,45 @@ def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any
     return t
 
 
+def profile_scale(table: Table) -> tuple[float, str]:
+    """Plot scale and unit for a profile's visibilities: (1e6, "µJy"), or (1e3, "mJy") above 1 mJy."""
+    re = np.asarray(table["re_jy"])
+    if np.nanmax(np.abs(np.concatenate([re, [0.0]]))) > 1e-3:
+        return 1e3, "mJy"
+    return 1e6, "µJy"
+
+
+def draw_uv_profile(ax: Any, table: Table, *, scale: float, unit: str) -> None:
+    """Draw a :func:`uv_profile` table on matplotlib Axes ``ax``.
+
+    Re V (circles, data line ``gid="re"``) and Im V (squares, ``gid="im"``) with 1σ errors
+    against the bin centre in kλ, a zero line, and the axis labels. The visibilities are
+    multiplied by ``scale`` (e.g. 1e6 for µJy; ``unit`` is its label).
+    """
+    x = np.asarray(table["uvdist_klambda"])
+    re = ax.errorbar(x, np.asarray(table["re_jy"]) * scale,
+                     yerr=np.asarray(table["re_err_jy"]) * scale, fmt="o", ms=4, color="C0",
+                     label="Re V")
+    im = ax.errorbar(x, np.asarray(table["im_jy"]) * scale,
+                     yerr=np.asarray(table["im_err_jy"]) * scale, fmt="s", ms=3, color="C3",
+                     alpha=0.6, label="Im V")
+    re.lines[0].set_gid("re")
+    im.lines[0].set_gid("im")
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xlabel("uv distance [kλ]")
+    ax.set_ylabel(f"visibility [{unit}]")
+
+
+def save_png(fig: Any, path: str | os.PathLike, *, overwrite: bool) -> str:
+    """Write a matplotlib Figure to ``path`` as PNG atomically; returns ``path`` as str."""
+    from xstack._atomic import atomic_output
+
+    path = os.fspath(path)
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        fig.savefig(str(tmp), format="png")
+    return path
+
+
 def plot_uv_profile(table: Table, path: str | os.PathLike, *, title: str | None = None,
                     overwrite: bool = True, flux_jy: float | None = None) -> str:
     """Plot Re V and Im V with error bars against uv distance (kλ) to a PNG (Agg backend)."""
@@ -196,29 +235,14 @@ def plot_uv_profile(table: Table, path: str | os.PathLike, *, title: str | None 
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
-    from xstack._atomic import atomic_output
-
     fig = Figure(figsize=(6.4, 4.2), dpi=110)
     ax = fig.add_subplot(111)
-    x = np.asarray(table["uvdist_klambda"])
-    scale, unit = 1e6, "µJy"
-    re = np.asarray(table["re_jy"])
-    if np.nanmax(np.abs(np.concatenate([re, [0.0]]))) > 1e-3:
-        scale, unit = 1e3, "mJy"
-    ax.errorbar(x, re * scale, yerr=np.asarray(table["re_err_jy"]) * scale, fmt="o", ms=4,
-                color="C0", label="Re V")
-    ax.errorbar(x, np.asarray(table["im_jy"]) * scale, yerr=np.asarray(table["im_err_jy"]) * scale,
-                fmt="s", ms=3, color="C3", alpha=0.6, label="Im V")
-    ax.axhline(0.0, color="0.5", lw=0.8)
+    scale, unit = profile_scale(table)
+    draw_uv_profile(ax, table, scale=scale, unit=unit)
     if flux_jy is not None:
         ax.axhline(flux_jy * scale, color="C0", ls="--", lw=0.8, label="stacked flux")
-    ax.set_xlabel("uv distance [kλ]")
-    ax.set_ylabel(f"visibility [{unit}]")
     if title:
         ax.set_title(title)
     ax.legend(frameon=False)
     fig.tight_layout()
-    path = os.fspath(path)
-    with atomic_output(path, overwrite=overwrite) as tmp:
-        fig.savefig(str(tmp), format="png")
-    return path
+    return save_png(fig, path, overwrite=overwrite)

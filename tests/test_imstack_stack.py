@@ -185,6 +185,30 @@ def test_mosaic_pointings_with_pb_weights_and_4d_axes(tmp_path):
     assert set(np.unique(res.cube.image.values)) == {0, 1}
 
 
+def test_no_primary_beam_correction_beyond_the_first_null(tmp_path):
+    # cutoff 0: positions inside the main lobe are corrected, one in the Airy sidelobe
+    # (A ~ 0.018 > 0) and one beyond are not stacked at all
+    from xstack.beams import PrimaryBeam
+
+    rng = np.random.default_rng(10)
+    cell, n, beam, freq = 0.5, 240, (1.0, 0.8, 0.0), 230e9
+    pb0 = standard_beam("ALMA", 12.0)
+    pb = PrimaryBeam(pb0.model, pb0.dish_diameter, pb0.blockage_diameter, cutoff=0.0)
+    r_null = float(np.degrees(pb.first_null(freq))) * 3600  # arcsec
+    offsets = np.array([0.3, 0.6, 1.3, 1.5]) * r_null
+    ra = 57.30 + offsets / 3600 / np.cos(np.radians(30))
+    dec = np.full(4, -30.0)
+    w = sin_wcs(n, cell, 57.30, -30.0)
+    img = rng.normal(0, 1e-3, (n, n))
+    path = write_image(tmp_path / "a.fits", img, w, beam, four_d=True, freq_hz=freq,
+                       extra={"TELESCOP": "ALMA"})
+    assert pb(np.radians(1.3 * r_null / 3600), freq) > 0.01
+    res = imstack(path, np.c_[ra, dec], stamp_size=16, weighting="pb", pbcor=True,
+                  pb=pb, skip_outside=True)
+    assert list(res.weights[:, 0] > 0) == [True, True, False, False]
+    assert np.isfinite(res.flux_jy)
+
+
 def test_four_d_image_equals_two_d(tmp_path):
     rng = np.random.default_rng(9)
     w = sin_wcs(100, 0.5)

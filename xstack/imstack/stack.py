@@ -178,7 +178,9 @@ def _primary_beam_values(info: ImageInfo, pb: Any, ra: np.ndarray, dec: np.ndarr
                               "give a PB FITS image instead")
         theta = angular_separation(np.radians(ra), np.radians(dec),
                                    np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1]))
-        return np.asarray(pb(theta, info.frequency_hz), dtype=np.float64)
+        a = np.asarray(pb(theta, info.frequency_hz), dtype=np.float64)
+        # beyond the first null a sidelobe is no primary-beam correction (docs/conventions.md)
+        return np.where(theta < pb.first_null(info.frequency_hz), a, 0.0)
     # a primary-beam image: nearest pixel at each position, 0 off the image
     pbimg = read_image(pb, name=f"primary beam {pb}")
     px, py = pbimg.wcs.world_to_pixel_values(ra, dec)
@@ -383,7 +385,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
                 raise XstackError(f"{info.name}: no primary beam known (TELESCOP "
                                   f"{info.telescope!r}, frequency {info.frequency_hz}); give pb=")
             cutoff = pbs[i].cutoff if isinstance(pbs[i], PrimaryBeam) else 0.1
-            inside &= a >= cutoff
+            inside &= (a >= cutoff) & (a > 0)  # A = 0 (beyond the null) even at cutoff 0
             atten[:, i] = a
         seen[:, i] = inside
         pix[:, i, 0], pix[:, i, 1] = px, py

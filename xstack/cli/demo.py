@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
                   "--weighting", "sigma2"], log)
 
     print("# 7. model fit of the stacked visibilities; Monte Carlo noise and bias", file=log)
-    fit = _xstack(["fit", d["stacked.zarr"], "--model", "point"], log)
+    fit = _xstack(["fit", d["stacked.zarr"], "--model", "point", "--png", str(out / "fit_uv.png")], log)
     noise = _xstack(["noise", d["residual.zarr"], targets, "--method", "mc",
                      "--realizations", "20", "--seed", str(args.seed),
                      "--avoid", bright, "--png", str(out / "noise_mc.png")], log)

@@ -1,11 +1,12 @@
 """Model fitting of stacked data: uv-domain (:func:`fit_uv`) and image-domain PSF fitting
-(:func:`fit_image`), paper section 3.4. See ``docs/fit.md``."""
+(:func:`fit_image`), paper section 3.4, and pictures of the fits (:func:`plot_uv_fit`,
+:func:`plot_image_fit`). See ``docs/fit.md``."""
 
 from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["FitResult", "fit_image", "fit_uv"]
+__all__ = ["FitResult", "fit_image", "fit_uv", "plot_image_fit", "plot_uv_fit"]
 
 
 def __getattr__(name: str) -> Any:
@@ -18,4 +19,7 @@ def __getattr__(name: str) -> Any:
     if name == "FitResult":
         from xstack.fit.result import FitResult
         return FitResult
+    if name in ("plot_uv_fit", "plot_image_fit"):
+        from xstack.fit import plot
+        return getattr(plot, name)
     raise AttributeError(name)

@@ -319,10 +319,12 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
 
     import zarr
 
-    from xstack._progress import progress_iter
+    bar = None
+    if progress:  # tqdm takes longer to import than a small MS takes to read
+        from xstack._progress import progress_iter
 
-    total = sum(-(-p.times.size // ct) * -(-p.antenna1.size // cb) for p, (ct, cb) in zip(plans, sizes))
-    bar = progress_iter(range(total), description, enabled=progress) if progress else None
+        total = sum(-(-p.times.size // ct) * -(-p.antenna1.size // cb) for p, (ct, cb) in zip(plans, sizes))
+        bar = progress_iter(range(total), description, enabled=True)
     in_flight: list[list[Future]] = [[], []]  # the writes still reading each buffer set
     open_fds: set[int] = set()
 

@@ -103,6 +103,10 @@ def _run(code: str, *args: str) -> dict:
     return json.loads(lines[-1]) if lines else {}
 
 
+def _load(avg: tuple[float, float, float]) -> str:
+    return " / ".join(f"{x:.1f}" for x in avg)
+
+
 def _du(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
@@ -121,6 +125,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     n_bl = N_ANT * (N_ANT - 1) // 2
     results = []
+    load_before = os.getloadavg()
     for size in (float(s) for s in args.sizes.split(",")):
         n_times = max(1, int(round(size * 1e9 / (n_bl * ROW_BYTES))))
         ms = work / f"bench_{size:g}GB.ms"
@@ -131,6 +136,8 @@ def main() -> None:
         store = work / f"bench_{size:g}GB.zarr"
         best: dict[str, dict] = {}
         for _ in range(args.repeat):
+            # the previous run's store goes first: deleting ~1 GB of files is not converting
+            shutil.rmtree(store, ignore_errors=True)
             runs = {"plain": _run(_PLAIN.format(row_bytes=ROW_BYTES), str(ms)),
                     "convert": _run(_CONVERT, str(ms), str(store))}
             # the cost of writing the store's bytes with numpy.tofile: the output floor
@@ -153,9 +160,11 @@ def main() -> None:
             shutil.rmtree(store, ignore_errors=True)
             shutil.rmtree(work / f"bench_{size:g}GB.out.ms", ignore_errors=True)
 
+    load_after = os.getloadavg()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
           f"MS: {N_ANT} antennas ({n_bl} baselines), {N_CHAN} channels, {len(POLS)} correlations, "
-          "WEIGHT_SPECTRUM; warm page cache (MS just written)\n")
+          f"WEIGHT_SPECTRUM; warm page cache (MS just written); best of {args.repeat} run(s); "
+          f"load average (1, 5, 15 min) before {_load(load_before)}, after {_load(load_after)}\n")
     head = ("| MS size | rows | plain read wall / CPU (s) | raw write of the store's bytes wall / CPU (s) "
             "| convert wall / CPU (s) | convert MB/s | convert Mvis/s | convert / plain read, wall | "
             "convert / (read + write), wall | peak RSS plain / convert (MB) | store size (MB) |")

@@ -25,7 +25,7 @@ def test_demo_recovers_injected_flux(tmp_path):
         assert flux / err > 3
     # the Monte Carlo noise agrees with the analytic uv-stacking error within a factor 1.5
     assert summary["mc_noise_jy"] == pytest.approx(summary["uvstack_flux_err_jy"], rel=0.5)
-    for name in ("image.png", "imstack.png", "stacked_uvprofile.png", "noise_mc.png",
+    for name in ("image.png", "imstack.png", "stacked_uvprofile.png", "noise_mc.png", "fit_uv.png",
                  "imstack.fits", "stacked.zarr"):
         assert (out / name).exists(), name
 

@@ -66,7 +66,7 @@ def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
             "pixel_arcsec": (float(scales[0]), float(scales[1])), "centre": centre}
 
 
-def _read_psf(psf: Any, with_flag: bool = False) -> Any:
+def read_psf(psf: Any, with_flag: bool = False) -> Any:
     """The PSF array (and whether it is an imstack PSF with pixelisation smear)."""
     smeared = False
     if isinstance(psf, (str, os.PathLike)):
@@ -84,7 +84,7 @@ def _read_psf(psf: Any, with_flag: bool = False) -> Any:
     return (arr, smeared) if with_flag else arr
 
 
-class _Convolver:
+class PsfConvolver:
     """Convolutions with the PSF on a padded grid aligned with the stamp."""
 
     def __init__(self, psf: np.ndarray, shape: tuple[int, int], centre: tuple[int, int],
@@ -207,10 +207,10 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         raise XstackError(f"the stamp must be a 2-D image, got shape {img.shape}")
     ny, nx = img.shape
     centre = (ny // 2, nx // 2) if centre is None else (int(centre[0]), int(centre[1]))
-    psf_arr, smeared_file = _read_psf(psf, with_flag=True)
+    psf_arr, smeared_file = read_psf(psf, with_flag=True)
     smeared = smeared or smeared_file
     normalise = (not smeared) if normalise_psf is None else bool(normalise_psf)
-    conv = _Convolver(psf_arr, img.shape, centre, pix, normalise=normalise)
+    conv = PsfConvolver(psf_arr, img.shape, centre, pix, normalise=normalise)
     yy, xx = np.mgrid[0:ny, 0:nx]
     r = np.hypot((yy - centre[0]) * pix[1], (xx - centre[1]) * pix[0])
     use = np.isfinite(img)

@@ -149,14 +149,14 @@ def image_model(stamp_shape: tuple[int, int], psf: Any, result: FitResult) -> np
     Uses the pixel size, centre and PSF normalisation recorded by
     :func:`~xstack.fit.imfit.fit_image` in ``result.extra`` and the fitted θ² as fitted.
     """
-    from xstack.fit.imfit import _Convolver, _read_psf
+    from xstack.fit.imfit import PsfConvolver, read_psf
 
     if result.domain != "image":
         raise XstackError(f"need an image-domain fit, got {result.domain!r}")
     ex = result.extra
     pix = (float(ex["pixel_arcsec"][0]), float(ex["pixel_arcsec"][1]))
     centre = (int(ex["centre_pixel"][0]), int(ex["centre_pixel"][1]))
-    conv = _Convolver(_read_psf(psf), tuple(stamp_shape), centre, pix,
+    conv = PsfConvolver(read_psf(psf), tuple(stamp_shape), centre, pix,
                       normalise=bool(ex.get("psf_normalised", True)))
     a = float(result.values[1]) if result.model == "gaussian" else 0.0
     base, _ = conv.model(a)
@@ -171,7 +171,7 @@ def _image_fit_figure(stamp: np.ndarray, model: np.ndarray, result: FitResult, *
     Each panel's image has ``gid`` ``"stamp"``, ``"model"`` or ``"residual"``; the first
     two share one colour scale.
     """
-    from xstack.imstack.plot import _unit_scale
+    from xstack.imstack.plot import unit_scale
 
     Figure = _figure_class()
     ny, nx = stamp.shape
@@ -181,7 +181,7 @@ def _image_fit_figure(stamp: np.ndarray, model: np.ndarray, result: FitResult, *
     # pixel edges in arcsec offsets from the stacking position; east to the left for sky images
     extent = (sx * (-cx - 0.5) * pix[0], sx * (nx - cx - 0.5) * pix[0],
               (-cy - 0.5) * pix[1], (ny - cy - 0.5) * pix[1])
-    scale, unit = _unit_scale(np.concatenate([stamp.ravel(), model.ravel()]))
+    scale, unit = unit_scale(np.concatenate([stamp.ravel(), model.ravel()]))
     resid = stamp - model
     vmin = float(np.nanmin([np.nanmin(stamp), np.nanmin(model)])) / scale
     vmax = float(np.nanmax([np.nanmax(stamp), np.nanmax(model)])) / scale
@@ -205,7 +205,7 @@ def _image_fit_figure(stamp: np.ndarray, model: np.ndarray, result: FitResult, *
         ax.set_ylabel("offset north (arcsec)" if east_left else "y offset (arcsec)")
         ax.set_title(name)
         fig.colorbar(im, ax=ax, label=f"{unit}/beam", shrink=0.85)
-    text = _fit_text(result, 1.0 / scale, unit)  # _unit_scale gives Jy per unit, not units per Jy
+    text = _fit_text(result, 1.0 / scale, unit)  # unit_scale gives Jy per unit, not units per Jy
     if "background_jy_per_beam" in result.extra:
         text += (f", c = {result.extra['background_jy_per_beam'] / scale:.3g} ± "
                  f"{result.extra['background_err_jy_per_beam'] / scale:.2g} {unit}/beam")

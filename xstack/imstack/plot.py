@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 
-def _unit_scale(values: np.ndarray) -> tuple[float, str]:
+def unit_scale(values: np.ndarray) -> tuple[float, str]:
+    """Display scale and unit label (Jy, mJy, uJy, nJy) for values in Jy."""
     peak = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 1.0
     for scale, label in ((1.0, "Jy"), (1e-3, "mJy"), (1e-6, r"$\mu$Jy"), (1e-9, "nJy")):
         if peak >= scale:
@@ -36,7 +37,7 @@ def plot_stack(result: Any, path: str | os.PathLike) -> None:
     dx = (x[1] - x[0]) if x.size > 1 else 1.0
     dy = (y[1] - y[0]) if y.size > 1 else 1.0
     extent = (x[0] - dx / 2, x[-1] + dx / 2, y[0] - dy / 2, y[-1] + dy / 2)
-    scale, unit = _unit_scale(data)
+    scale, unit = unit_scale(data)
     rms = result.stamp_rms_jy
     radius = result.mask_radius_arcsec
     xx, yy = np.meshgrid(x, y)

@@ -154,9 +154,9 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
         if psf is None:
             raise XstackError(f"{info.name}: the mc method needs the PSF (dirty beam) image "
                               "(psf=..., or X.psf.fits beside the image)")
-        from xstack.fit.imfit import _read_psf
+        from xstack.fit.imfit import read_psf
 
-        P = _read_psf(psf)
+        P = read_psf(psf)
         if P.ndim != 2:
             raise XstackError(f"the PSF must be a 2-D image, got shape {P.shape}")
         P = np.where(np.isfinite(P), P, 0.0)

@@ -22,6 +22,7 @@ from xstack.testing import real_ms
 
 
 def main(outdir: Path) -> dict:
+    outdir.mkdir(parents=True, exist_ok=True)
     ms = real_ms("evla", outdir)  # a copy: xstack never modifies its inputs anyway
     store = xstack.convert_ms(ms, outdir / "evla.zarr", overwrite=True)
     tree = xstack.open_store(store)
@@ -46,10 +47,5 @@ def main(outdir: Path) -> dict:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1:
-        out = Path(sys.argv[1])
-        out.mkdir(parents=True, exist_ok=True)
-        main(out)
-    else:
-        with tempfile.TemporaryDirectory() as tmp:
-            main(Path(tmp))
+    with tempfile.TemporaryDirectory() as tmp:  # OUTDIR on the command line keeps the files
+        main(Path(sys.argv[1] if len(sys.argv) > 1 else tmp))

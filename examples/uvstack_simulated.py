@@ -21,6 +21,7 @@ SCENE = Path(__file__).with_name("faint_targets.toml")  # the scene, as a TOML f
 
 
 def main(outdir: Path) -> dict[str, float]:
+    outdir.mkdir(parents=True, exist_ok=True)
     sim = xstack.simulate(xstack.load_scene(SCENE), outdir / "sim.zarr", seed=3, overwrite=True)
     targets = sim.catalogs["targets"]
     print(f"simulated {sim.n_visibilities:,} visibilities, {len(targets)} targets")
@@ -43,10 +44,5 @@ def main(outdir: Path) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1:
-        out = Path(sys.argv[1])
-        out.mkdir(parents=True, exist_ok=True)
-        main(out)
-    else:
-        with tempfile.TemporaryDirectory() as tmp:
-            main(Path(tmp))
+    with tempfile.TemporaryDirectory() as tmp:  # OUTDIR on the command line keeps the files
+        main(Path(sys.argv[1] if len(sys.argv) > 1 else tmp))

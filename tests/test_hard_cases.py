@@ -1,0 +1,202 @@
+"""Numerically hard cases of every stage but uv-stacking (that is tests/test_uvstack_hard.py).
+
+Poles, RA wrap-around, fully flagged / zero-weight / NaN inputs and huge phase arguments,
+each checked against an independent truth: astropy coordinates (SkyCoord offsets and
+separations, the FITS WCS), explicit formulas and numpy long double.
+"""
+
+from __future__ import annotations
+
+import math
+
+import astropy.units as u
+import numpy as np
+import pytest
+from astropy.coordinates import SkyCoord
+
+from xstack.sim.arrays import enu_to_itrf, packaged_array
+from xstack.sim.simulate import simulate_partitions
+
+C = 299_792_458.0
+ARCSEC = math.pi / 180.0 / 3600.0
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _scene(centre_deg, populations, *, config="vla.d", antennas=range(6), freq=1.4e9,
+           channels=3, bandwidth=None, w_term=True, n_int=3, hour_angle=(-1.0, 1.0), **kw):
+    base = {
+        "name": "hard",
+        "array": {"config": config, "antennas": list(antennas)},
+        "observation": {"hour_angle": list(hour_angle), "integration": 60.0,
+                        "time_per_pointing": 60.0 * n_int},
+        "spectral": {"centre": freq, "bandwidth": bandwidth or freq * 0.02,
+                     "channels": channels, "polarizations": ["RR", "LL"]},
+        "pointings": {"mode": "single", "centre": list(centre_deg)},
+        "effects": {"w_term": w_term},
+        "visibility_dtype": "complex128",
+        "populations": populations,
+    }
+    base.update(kw)
+    return base
+
+
+def _listed(name, ra, dec, flux):
+    return {"name": name, "count": len(ra), "flux": {"kind": "fixed", "value": flux},
+            "positions": {"kind": "list", "ra": list(ra), "dec": list(dec)}}
+
+
+def _offsets(ra_deg, dec_deg, centre_deg):
+    """Direction cosines (l, m, n) of positions about a centre, from astropy's offset frame.
+
+    In SkyOffsetFrame the centre is (lon, lat) = (0, 0), lon grows to the east and lat to
+    the north, so the unit vector (cos lat cos lon, cos lat sin lon, sin lat) is (n, l, m).
+    """
+    centre = SkyCoord(*centre_deg, unit="deg", frame="icrs")
+    off = SkyCoord(ra_deg, dec_deg, unit="deg", frame="icrs").transform_to(
+        centre.skyoffset_frame())
+    lon, lat = off.lon.to_value(u.rad), off.lat.to_value(u.rad)
+    return (np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon))
+
+
+def _direct_eq1(uvw, freq, l, m, n, flux):
+    """Equation 1 for one point source, straight from its definition (complex128)."""
+    lam = C / np.asarray(freq, float)
+    # n - 1 without cancellation: the w-term needs it to full precision
+    nm1 = -(l * l + m * m) / (1.0 + n)
+    phase = 2 * np.pi * (uvw[..., 0, None] * l + uvw[..., 1, None] * m
+                         + uvw[..., 2, None] * nm1) / lam
+    return flux * np.exp(1j * phase)
+
+
+def _only(parts):
+    (ds,) = parts.values()
+    return ds.compute()
+
+
+# ------------------------------------------------------------- 1. simulator: poles, RA wrap
+
+@pytest.mark.parametrize("dec0", [89.9, -89.9])
+def test_simulator_near_the_poles(dec0):
+    """A disc that contains the pole, a box beside it, and a source across the pole."""
+    # the pole must be above the horizon: the VLA for the north, ALMA for the south (at
+    # 1.4 GHz too, so that its primary beam holds the same 0.1 deg offsets)
+    config = "vla.d" if dec0 > 0 else "alma.cycle1.6"
+    centre = (123.0, dec0)
+    radius, box = 500.0, [300.0, 300.0]  # arcsec; the disc contains the pole (360" away)
+    # the source: 0.105 deg from the centre, across the pole (RA + 180 deg)
+    src = (303.0, math.copysign(89.995, dec0))
+    pops = [
+        _listed("src", [src[0]], [src[1]], 2e-3),
+        {"name": "disc", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
+         "positions": {"kind": "disc", "radius_arcsec": radius}},
+        {"name": "box", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
+         "positions": {"kind": "box", "size_arcsec": box}},
+    ]
+    parts, cats = simulate_partitions(_scene(centre, pops, config=config), seed=3)
+    ds = _only(parts)
+
+    l, m, _ = _offsets(cats["disc"]["ra"], cats["disc"]["dec"], centre)
+    assert np.all(np.hypot(l, m) <= radius * ARCSEC * (1 + 1e-9))
+    sep = SkyCoord(*centre, unit="deg").separation(
+        SkyCoord(cats["disc"]["ra"], cats["disc"]["dec"], unit="deg")).arcsec
+    assert np.all(sep <= radius * (1 + 1e-6))
+    # the disc really straddles the pole: its positions span every RA
+    assert np.ptp(np.asarray(cats["disc"]["ra"])) > 300
+    l, m, _ = _offsets(cats["box"]["ra"], cats["box"]["dec"], centre)
+    assert np.all(np.abs(l) <= box[0] / 2 * ARCSEC * (1 + 1e-9))
+    assert np.all(np.abs(m) <= box[1] / 2 * ARCSEC * (1 + 1e-9))
+    # uniform in the box: both halves about equally full (not bunched by the RA/Dec grid)
+    assert 150 < np.sum(l > 0) < 250 and 150 < np.sum(m > 0) < 250
+
+    # the catalog keeps the source where it was asked for
+    assert SkyCoord(*src, unit="deg").separation(SkyCoord(
+        cats["src"]["ra"][0], cats["src"]["dec"][0], unit="deg")).arcsec < 1e-9
+    l, m, n = _offsets(src[0], src[1], centre)
+    expect = _direct_eq1(ds.UVW.values, ds.frequency.values, l, m, n, 2e-3)
+    vis = ds.VISIBILITY.values
+    np.testing.assert_allclose(vis[..., 0], expect, rtol=0, atol=2e-3 * 1e-9)
+    np.testing.assert_allclose(vis[..., 1], expect, rtol=0, atol=2e-3 * 1e-9)
+    # not trivially constant: the source is far enough off centre to wind the phase
+    assert np.ptp(np.angle(expect)) > 1.0
+
+
+@pytest.mark.parametrize("centre_ra", [359.99, 0.01])
+def test_simulator_across_ra_zero(centre_ra):
+    centre = (centre_ra, -30.0)
+    pops = [
+        _listed("src", [0.02 if centre_ra > 180 else 359.98], [-30.01], 1e-3),
+        {"name": "box", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
+         "positions": {"kind": "box", "size_arcsec": [300.0, 120.0]}},
+        {"name": "disc", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
+         "positions": {"kind": "disc", "radius_arcsec": 200.0}},
+    ]
+    parts, cats = simulate_partitions(_scene(centre, pops), seed=5)
+    ds = _only(parts)
+    for name, half in (("box", (150.0, 60.0)), ("disc", None)):
+        ra = np.asarray(cats[name]["ra"])
+        assert np.all((ra >= 0) & (ra < 360))
+        # both sides of RA 0 are populated
+        assert np.any(ra < 1) and np.any(ra > 359)
+        l, m, _ = _offsets(ra, cats[name]["dec"], centre)
+        if half:
+            assert np.all(np.abs(l) <= half[0] * ARCSEC * (1 + 1e-9))
+            assert np.all(np.abs(m) <= half[1] * ARCSEC * (1 + 1e-9))
+        else:
+            assert np.all(np.hypot(l, m) <= 200 * ARCSEC * (1 + 1e-9))
+    # the box is centred on the pointing, not shifted by 360 deg or mirrored
+    l, m, _ = _offsets(cats["box"]["ra"], cats["box"]["dec"], centre)
+    assert abs(np.mean(l)) < 10 * ARCSEC and abs(np.mean(m)) < 5 * ARCSEC
+
+    src = (float(cats["src"]["ra"][0]), float(cats["src"]["dec"][0]))
+    l, m, n = _offsets(*src, centre)
+    expect = _direct_eq1(ds.UVW.values, ds.frequency.values, l, m, n, 1e-3)
+    np.testing.assert_allclose(ds.VISIBILITY.values[..., 0], expect, rtol=0, atol=1e-12)
+    assert np.ptp(np.angle(expect)) > 1.0
+
+
+# ------------------------------------------------------- 6. simulator: huge phase arguments
+
+def _long_baseline_scene(src, centre, channels):
+    site = packaged_array("alma.cycle1.6").site
+    # a 16 km east-west baseline and a 12 km north-south one, ALMA-like (at its site)
+    enu = np.array([[0.0, 0.0, 0.0], [16_000.0, 0.0, 3.0], [-700.0, 12_000.0, -5.0]])
+    pos = enu_to_itrf(enu, site).tolist()
+    scene = _scene(centre, [_listed("src", [src[0]], [src[1]], 1.0)], channels=channels,
+                   freq=900e9, bandwidth=7.5e9, n_int=4)
+    scene["array"] = {"positions": pos, "diameters": [12.0] * 3, "telescope": "ALMA",
+                      "names": ["A", "B", "C"]}
+    # 1' is far outside a 900 GHz primary beam: simulate the source without one
+    scene["effects"] = {"w_term": True, "primary_beam": "none", "pb_cutoff": 0.0}
+    return scene
+
+
+@pytest.mark.parametrize("channels", [3, 70])  # 70: past two resyncs of the channel recurrence
+def test_simulator_huge_phases_match_long_double(channels):
+    centre = (201.0, -23.0)
+    src = (201.0 + 1.0 / 60 / math.cos(math.radians(23.0)) * 0.6, -23.0 + 0.8 / 60)  # 1' off
+    parts, cats = simulate_partitions(_long_baseline_scene(src, centre, channels))
+    ds = _only(parts)
+    assert SkyCoord(*centre, unit="deg").separation(
+        SkyCoord(*src, unit="deg")).arcmin == pytest.approx(1.0, rel=1e-3)
+
+    ld = np.longdouble
+    if np.finfo(ld).eps >= np.finfo(np.float64).eps:
+        pytest.skip("no extended-precision long double on this platform")
+    pi = np.arccos(ld(-1))
+    to_rad = pi / ld(180)
+    ra, dec = ld(float(cats["src"]["ra"][0])) * to_rad, ld(float(cats["src"]["dec"][0])) * to_rad
+    ra0, dec0 = ld(centre[0]) * to_rad, ld(centre[1]) * to_rad
+    l = np.cos(dec) * np.sin(ra - ra0)
+    m = np.sin(dec) * np.cos(dec0) - np.cos(dec) * np.sin(dec0) * np.cos(ra - ra0)
+    n = np.sqrt(1 - l * l - m * m)
+    uvw = ds.UVW.values.astype(ld)
+    freq = ds.frequency.values.astype(ld)
+    turns = (uvw[..., 0, None] * l + uvw[..., 1, None] * m + uvw[..., 2, None] * (n - 1)) \
+        * freq / ld(C)
+    assert np.abs(turns).max() > 5e3  # phases of more than 3e4 radians
+    reduced = (2 * pi * (turns - np.round(turns))).astype(np.float64)  # exact in [-pi, pi]
+    vis = ds.VISIBILITY.values[..., 0]
+    err = np.angle(vis * np.exp(-1j * reduced))
+    assert np.abs(err).max() < 1e-6
+    np.testing.assert_allclose(np.abs(vis), 1.0, rtol=1e-12)

@@ -13,7 +13,10 @@ import astropy.units as u
 import numpy as np
 import pytest
 from astropy.coordinates import SkyCoord
+from astropy.io import fits
+from astropy.wcs import WCS
 
+from xstack.errors import XstackError
 from xstack.sim.arrays import enu_to_itrf, packaged_array
 from xstack.sim.simulate import simulate_partitions
 
@@ -200,3 +203,145 @@ def test_simulator_huge_phases_match_long_double(channels):
     err = np.angle(vis * np.exp(-1j * reduced))
     assert np.abs(err).max() < 1e-6
     np.testing.assert_allclose(np.abs(vis), 1.0, rtol=1e-12)
+
+
+# ------------------------------------------------------- 2. imaging at the pole / across RA 0
+
+def _sin_wcs(centre_deg, n, cell_arcsec):
+    """The FITS SIN grid xstack images on, built by astropy from its definition."""
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---SIN", "DEC--SIN"]
+    w.wcs.crval = list(centre_deg)
+    w.wcs.crpix = [n // 2 + 1, n // 2 + 1]
+    w.wcs.cdelt = [-cell_arcsec / 3600, cell_arcsec / 3600]
+    return w
+
+
+def _peak(image):
+    """(x, y) of the maximum, refined by a parabola through its neighbours on each axis."""
+    iy, ix = np.unravel_index(np.argmax(image), image.shape)
+
+    def vertex(a, b, c):
+        return 0.5 * (a - c) / (a - 2 * b + c)
+
+    return (ix + vertex(*image[iy, ix - 1:ix + 2]), iy + vertex(*image[iy - 1:iy + 2, ix]),
+            ix, iy)
+
+
+@pytest.mark.parametrize("centre, pixel, src", [
+    # 0.1 deg from the pole; the source 450" north: across the pole, on a pixel centre
+    ((123.0, 89.9), (7, 45), None),
+    # the image straddles RA 0; the source at RA 359.99, on no particular pixel
+    ((0.001, 10.0), None, (359.99, 10.02)),
+])
+def test_imaging_peak_at_the_true_position(centre, pixel, src):
+    from xstack.imaging.image import make_image
+
+    n, cell = 128, 10.0
+    truth = _sin_wcs(centre, n, cell)
+    if pixel is not None:  # pixel offsets (x west, y north) from the centre pixel
+        ra, dec = truth.pixel_to_world_values(n // 2 - pixel[0], n // 2 + pixel[1])
+        src = (float(ra), float(dec))
+    scene = _scene(centre, [_listed("src", [src[0]], [src[1]], 1e-3)], antennas=range(0, 27, 2),
+                   observation={
+                       "hour_angle": [-3.0, 3.0], "integration": 1200.0,
+                       "time_per_pointing": 9600.0})
+    parts, _ = simulate_partitions(scene)
+    res = make_image(parts, size=n, cell_arcsec=cell)
+    x, y, ix, iy = _peak(res.image)
+    want_x, want_y = truth.world_to_pixel_values(*src)
+    if pixel is not None:
+        assert (ix, iy) == (n // 2 - pixel[0], n // 2 + pixel[1])
+    assert abs(x - want_x) < 0.15 and abs(y - want_y) < 0.15
+    ra, dec = res.wcs.pixel_to_world_values(x, y)
+    sep = SkyCoord(*src, unit="deg").separation(SkyCoord(ra, dec, unit="deg")).arcsec
+    assert sep < 0.15 * cell
+    assert res.image.max() == pytest.approx(1e-3, rel=0.02)
+
+
+# ------------------------------------------- 3. image-stacking across RA 0 and near the pole
+
+IMSTACK_BEAM = (3.2, 1.6, 30.0)  # arcsec, arcsec, deg
+
+
+@pytest.mark.parametrize("ra0, dec0", [(0.0, -30.0), (200.0, 89.9), (123.0, 89.995)])
+def test_imstack_across_ra_zero_and_near_the_pole(tmp_path, ra0, dec0):
+    from _imstack_helpers import make_field
+
+    from xstack.imstack import imstack
+
+    rng = np.random.default_rng(21)
+    path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=IMSTACK_BEAM, n_side=6,
+                                       noise=0.0, ra0=ra0, dec0=dec0)
+    if ra0 == 0.0:
+        assert (ra > 359).any() and (ra < 1).any()  # positions on both sides of RA 0
+        ra = np.where(ra > 180, ra - 360.0, ra)  # and given as negative RAs too
+    if dec0 > 89.99:  # the image holds the pole: the positions surround it
+        assert np.ptp(ra) > 300
+    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    assert res.n_positions == 36
+    assert res.flux_jy == pytest.approx(1.0, rel=0.01)
+    # every stamp sits on its own source (a wrong RA branch would land off the image or on
+    # another source)
+    c = 16
+    np.testing.assert_allclose(res.cube.values[:, c, c], 1.0, rtol=0.01)
+    # sub-pixel offsets are those of the injected sources (astropy's pixel positions)
+    np.testing.assert_allclose(res.cube.frac_x.values, px - np.floor(px + 0.5), atol=1e-6)
+    np.testing.assert_allclose(res.cube.frac_y.values, py - np.floor(py + 0.5), atol=1e-6)
+
+
+def test_imstack_blanked_stamps(tmp_path):
+    """An all-NaN stamp is left out; a stack whose centre nothing covers is an error."""
+    from _imstack_helpers import make_field
+
+    from xstack.imstack import imstack
+
+    rng = np.random.default_rng(22)
+    path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=IMSTACK_BEAM, n_side=4,
+                                       noise=1e-3, ra0=0.0, dec0=-30.0)
+    with fits.open(path) as h:
+        data, hdr = h[0].data.astype(np.float64), h[0].header
+    x0, y0 = int(round(px[0])), int(round(py[0]))
+    data[max(y0 - 16, 0):y0 + 16, max(x0 - 16, 0):x0 + 16] = np.nan  # its whole stamp
+    blank = tmp_path / "blank.fits"
+    fits.PrimaryHDU(data, header=hdr).writeto(blank)
+    pos = np.c_[ra, dec]
+    with pytest.raises(XstackError, match="1 of 16 positions"):
+        imstack(blank, pos, stamp_size=32)
+    for weighting in ("sigma2", "none"):
+        res = imstack(blank, pos, stamp_size=32, weighting=weighting, subpixel="fourier",
+                      skip_outside=True)
+        assert res.skipped_rows == [1] and res.n_positions == 15
+        assert np.isfinite(res.flux_jy) and np.isfinite(res.flux_err_jy)
+        assert res.flux_jy == pytest.approx(1.0, abs=0.01)
+        assert np.isfinite(res.stacked.values).all()
+    # every stamp blanked: a clear error, not a NaN stack
+    allnan = tmp_path / "allnan.fits"
+    fits.PrimaryHDU(np.full_like(data, np.nan), header=hdr).writeto(allnan)
+    with pytest.raises(XstackError, match="no position"):
+        imstack(allnan, pos, stamp_size=32, skip_outside=True)
+    with pytest.raises(XstackError, match="outside every image"):
+        imstack(allnan, pos, stamp_size=32)
+
+
+@pytest.mark.parametrize("subpixel", ["fourier", "spline"])
+def test_imstack_centre_lost_to_blanking_is_an_error(tmp_path, subpixel):
+    """The nearest pixel is finite but a blanked neighbour makes the shifted centre NaN."""
+    from _imstack_helpers import make_field
+
+    from xstack.imstack import imstack
+
+    rng = np.random.default_rng(23)
+    path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=IMSTACK_BEAM, n_side=2,
+                                       noise=1e-3)
+    with fits.open(path) as h:
+        data, hdr = h[0].data.astype(np.float64), h[0].header
+    for x, y in zip(px, py):  # one blanked pixel beside every source
+        data[int(round(y)), int(round(x)) + 2] = np.nan
+    holes = tmp_path / "holes.fits"
+    fits.PrimaryHDU(data, header=hdr).writeto(holes)
+    with pytest.raises(XstackError, match="stacking position"):
+        imstack(holes, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel=subpixel)
+    # nearest-pixel alignment keeps every centre and stacks fine
+    res = imstack(holes, np.c_[ra, dec], stamp_size=32, weighting="none")
+    assert np.isfinite(res.flux_jy)

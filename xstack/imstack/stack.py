@@ -311,7 +311,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     ------
     XstackError
         Bad option, image without celestial WCS, stamp larger than an image, positions
-        outside every image (unless ``skip_outside``), existing outputs.
+        outside every image or on blanked pixels (unless ``skip_outside``), no finite stamp
+        value at the stacking position, existing outputs.
     """
     # ---- options (before any work) ----------------------------------------------------------
     if method not in METHODS:
@@ -448,6 +449,13 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         stacked, wsum = kernels.nanmedian_stack(stamps[use])
     c = stamp_size // 2
     centre_ok = np.isfinite(stamps[:, c, c]) & (w > 0)
+    if not centre_ok.any():
+        # the nearest pixels are finite (or the position would count as uncovered), but a
+        # sub-pixel shift blanks pixels near a NaN: without this the flux is silently NaN
+        raise XstackError(
+            "no stamp has a finite value at the stacking position: blanked (NaN) pixels "
+            f"within {kernels.SPLINE_NAN_GUARD} pixels of every position spoil the sub-pixel "
+            "shift; use subpixel=False or images without blanking near the positions")
     # the stacked value's noise from the stamps' local noise (eq. 5 / 6)
     # (the median is unweighted: its error is that of the equal-weight mean times sqrt(pi/2))
     flux_err = kernels.weighted_error(sigma[centre_ok], w[centre_ok] if method == "mean"

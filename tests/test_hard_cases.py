@@ -483,3 +483,101 @@ def test_noise_random_positions_stay_inside_the_cutoff_at_every_channel(default_
                          field_radius_arcsec=None if default_field else 3600 * r_cut)
     r = np.radians(_sep_deg(res.positions_deg[..., 0], res.positions_deg[..., 1], *centre))
     assert np.all(beam(r[..., None], freq) >= beam.cutoff)
+
+
+# ------------------------------------------ 5. fully flagged, zero-weight and NaN inputs
+
+def _small_partition(centre=(150.0, 30.0), offset_deg=0.01, spw=0):
+    src = (centre[0], centre[1] + offset_deg)
+    scene = _scene(centre, [_listed("s", [src[0]], [src[1]], 1e-3)], antennas=range(0, 27, 3),
+                   n_int=4, effects={"w_term": True, "noise": {"sigma": 1e-3}},
+                   spectral={"centre": 1.4e9 + 0.1e9 * spw, "bandwidth": 0.05e9,
+                             "channels": 2, "polarizations": ["RR", "RL", "LR", "LL"]})
+    return _only(simulate_partitions(scene, seed=7 + spw)[0])
+
+
+def _spoil(ds, how, where=None):
+    """A copy of ``ds`` with the Stokes-I samples selected by ``where`` (all if None) made
+    unusable: flagged, zero weight, NaN weight, NaN visibility, or a NaN uvw row."""
+    out = ds.copy(deep=True)
+    sel = np.ones(ds.VISIBILITY.shape, bool) if where is None else where
+    if how == "flag":
+        out["FLAG"].values[sel] = True
+    elif how == "zero_weight":
+        out["WEIGHT"].values[sel] = 0.0
+    elif how == "nan_weight":
+        out["WEIGHT"].values[sel] = np.nan
+    elif how == "nan_vis":
+        out["VISIBILITY"].values[sel] = np.nan + 1j * np.nan
+    elif how == "nan_uvw":
+        out["UVW"].values[sel.any(axis=(2, 3))] = np.nan
+    return out
+
+
+SPOILS = ["flag", "zero_weight", "nan_weight", "nan_vis", "nan_uvw"]
+
+
+@pytest.mark.parametrize("how", SPOILS)
+def test_imaging_unusable_partition(how):
+    from xstack.imaging.image import make_image
+
+    ds = _small_partition()
+    with pytest.raises(XstackError, match="no unflagged parallel-hand visibilities"):
+        make_image({"p": _spoil(ds, how)}, size=64, cell_arcsec=5.0)
+    # a second spectral window of the same pointing that is entirely unusable adds nothing
+    good = make_image({"p": ds}, size=64, cell_arcsec=5.0)
+    both = make_image({"a": ds, "b": _spoil(_small_partition(spw=1), how)}, size=64,
+                      cell_arcsec=5.0)
+    assert np.isfinite(both.image).all() and np.isfinite(both.psf).all()
+    np.testing.assert_allclose(both.image, good.image, rtol=0, atol=1e-12)
+    # and half of it unusable: the same image as with those samples flagged
+    half = np.zeros(ds.VISIBILITY.shape, bool)
+    half[::2] = True
+    part = make_image({"p": _spoil(ds, how, half)}, size=64, cell_arcsec=5.0)
+    flagged = make_image({"p": _spoil(ds, "flag", half if how != "nan_uvw" else
+                                      np.broadcast_to(half.any(axis=(2, 3))[..., None, None],
+                                                      half.shape))},
+                         size=64, cell_arcsec=5.0)
+    assert np.isfinite(part.image).all()
+    np.testing.assert_allclose(part.image, flagged.image, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("how", SPOILS)
+def test_fit_unusable_stacked_data(how):
+    from xstack.fit import fit_uv
+
+    ds = _small_partition(offset_deg=0.0)  # a stacked data set: the source at the centre
+    for model in ("point", "gaussian"):
+        with pytest.raises(XstackError, match="no usable visibilities"):
+            fit_uv(_spoil(ds, how), model=model)
+    # everything inside the uv range unusable, the rest fine: no fit, a clear message
+    q = np.hypot(ds.UVW.values[..., 0], ds.UVW.values[..., 1])
+    lo, hi = np.percentile(q, [30, 70])
+    inside = ((q >= lo) & (q <= hi))[..., None, None] & np.ones(ds.VISIBILITY.shape, bool)
+    spoilt = _spoil(ds, how, inside)
+    with pytest.raises(XstackError, match="no visibilities left in the uv range"):
+        fit_uv(spoilt, model="point", uvmin=f"{lo}m", uvmax=f"{hi}m")
+    # outside the range the unusable samples are simply not there
+    res = fit_uv(spoilt, model="point")
+    ref = fit_uv(_spoil(ds, "flag", inside), model="point")
+    assert np.isfinite(res.flux_jy) and np.isfinite(res.flux_err_jy)
+    assert res.flux_jy == pytest.approx(ref.flux_jy, rel=1e-12)
+
+
+@pytest.mark.parametrize("method", ["analytic", "random", "mc", "bootstrap"])
+@pytest.mark.parametrize("how", ["zero_weight", "flag", "nan_vis"])
+def test_noise_all_weights_zero(method, how):
+    from xstack.noise.estimate import estimate_noise
+
+    ds = _small_partition()
+    ra, dec = np.array([150.0, 150.01]), np.array([30.01, 29.995])
+    with pytest.raises(XstackError, match="all data flagged"):
+        estimate_noise({"p": _spoil(ds, how)}, (ra, dec), method=method, realizations=5,
+                       flux=1e-3, min_separation_arcsec=5.0)
+    # a fully unusable second pointing does not poison the first
+    res = estimate_noise({"p": ds, "q": _spoil(ds, how)}, (ra, dec), method=method,
+                         realizations=5, flux=1e-3, min_separation_arcsec=5.0)
+    ref = estimate_noise({"p": ds}, (ra, dec), method=method, realizations=5, flux=1e-3,
+                         min_separation_arcsec=5.0)
+    assert np.isfinite(res.noise_jy) and np.isfinite(res.target_flux_jy)
+    assert res.target_flux_jy == pytest.approx(ref.target_flux_jy, rel=1e-9)

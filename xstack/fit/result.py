@@ -2,18 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-
-def _num(x: Any) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
+from xstack._json import finite_or_none
 
 
 @dataclass
@@ -67,25 +61,25 @@ class FitResult:
         out = {
             "model": self.model,
             "domain": self.domain,
-            "flux_jy": _num(self.flux_jy),
-            "flux_err_jy": _num(self.flux_err_jy),
-            "fwhm_arcsec": _num(self.fwhm_arcsec),
-            "fwhm_err_arcsec": _num(self.fwhm_err_arcsec),
-            "fwhm_upper_limit_arcsec": _num(self.fwhm_upper_limit_arcsec),
+            "flux_jy": finite_or_none(self.flux_jy),
+            "flux_err_jy": finite_or_none(self.flux_err_jy),
+            "fwhm_arcsec": finite_or_none(self.fwhm_arcsec),
+            "fwhm_err_arcsec": finite_or_none(self.fwhm_err_arcsec),
+            "fwhm_upper_limit_arcsec": finite_or_none(self.fwhm_upper_limit_arcsec),
             "resolved": self.resolved,
             "parameters": list(self.parameters),
-            "values": [_num(v) for v in np.ravel(self.values)],
-            "covariance": [[_num(v) for v in row] for row in np.atleast_2d(self.covariance)],
-            "chi2": _num(self.chi2),
+            "values": [finite_or_none(v) for v in np.ravel(self.values)],
+            "covariance": [[finite_or_none(v) for v in row] for row in np.atleast_2d(self.covariance)],
+            "chi2": finite_or_none(self.chi2),
             "dof": int(self.dof),
-            "chi2_reduced": _num(self.chi2_reduced),
-            "error_scale": _num(self.error_scale),
+            "chi2_reduced": finite_or_none(self.chi2_reduced),
+            "error_scale": finite_or_none(self.error_scale),
             "n_data": int(self.n_data),
         }
         for key, value in self.extra.items():
             if isinstance(value, (np.generic,)):
                 value = value.item()
             if isinstance(value, float):
-                value = _num(value)
+                value = finite_or_none(value)
             out[key] = value
         return out

@@ -15,7 +15,6 @@ linear: stack(data + model, pos) = stack(data, pos) + stack(model, pos)).
 from __future__ import annotations
 
 import json
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack._json import finite_or_none
 from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam, standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn, read_catalog
 from xstack.errors import XstackError
@@ -36,13 +36,6 @@ ENGINES = ("auto", "antenna", "row")
 #: antenna and time: the antenna phasors cost about what the sine/cosine of a row saves
 MIN_ROWS_PER_ANTENNA = 2.0
 WEIGHTINGS = ("none", "pb", "column")
-
-
-def _num(x: Any) -> float | None:
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 @dataclass
@@ -82,16 +75,16 @@ class NoiseResult:
 
     def to_dict(self, include_values: bool = True) -> dict[str, Any]:
         """JSON-ready dictionary."""
-        out = {"method": self.method, "domain": self.domain, "noise_jy": _num(self.noise_jy),
-               "bias_jy": _num(self.bias_jy), "realizations": int(self.realizations),
+        out = {"method": self.method, "domain": self.domain, "noise_jy": finite_or_none(self.noise_jy),
+               "bias_jy": finite_or_none(self.bias_jy), "realizations": int(self.realizations),
                "n_positions": int(self.n_positions),
-               "target_flux_jy": _num(self.target_flux_jy)}
+               "target_flux_jy": finite_or_none(self.target_flux_jy)}
         if include_values:
-            out["values_jy"] = [_num(v) for v in self.values]
+            out["values_jy"] = [finite_or_none(v) for v in self.values]
             if self.injected is not None:
-                out["injected_jy"] = [_num(v) for v in self.injected]
+                out["injected_jy"] = [finite_or_none(v) for v in self.injected]
         for k, v in self.extra.items():
-            out[k] = _num(v) if isinstance(v, (float, np.floating)) else v
+            out[k] = finite_or_none(v) if isinstance(v, (float, np.floating)) else v
         return out
 
     def table(self):
@@ -159,7 +152,9 @@ class _Pointing:
     def attenuation(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """(nchan, K) power attenuation of positions in this pointing."""
         theta = angular_separation(ra, dec, self.centre[0], self.centre[1])
-        return np.asarray(self.beam(theta[None, :], self.freq[:, None]), dtype=np.float64)
+        a = np.asarray(self.beam(theta[None, :], self.freq[:, None]), dtype=np.float64)
+        # beyond the first null nothing is primary-beam corrected (as xstack.uvstack decides)
+        return np.where(theta[None, :] < self.beam.first_null(self.freq)[:, None], a, 0.0)
 
     def inside(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """In this pointing: A >= cutoff in every channel (as xstack.uvstack decides)."""

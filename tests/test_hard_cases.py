@@ -215,6 +215,9 @@ def _sin_wcs(centre_deg, n, cell_arcsec):
     w.wcs.crval = list(centre_deg)
     w.wcs.crpix = [n // 2 + 1, n // 2 + 1]
     w.wcs.cdelt = [-cell_arcsec / 3600, cell_arcsec / 3600]
+    # l, m of docs/conventions.md at any centre, the pole included (FITS's default LONPOLE
+    # would turn the grid by 180 deg at dec0 = +90 exactly)
+    w.wcs.lonpole = 180.0
     return w
 
 
@@ -232,6 +235,8 @@ def _peak(image):
 @pytest.mark.parametrize("centre, pixel, src", [
     # 0.1 deg from the pole; the source 450" north: across the pole, on a pixel centre
     ((123.0, 89.9), (7, 45), None),
+    # centred exactly on the pole
+    ((45.0, 90.0), (-12, 30), None),
     # the image straddles RA 0; the source at RA 359.99, on no particular pixel
     ((0.001, 10.0), None, (359.99, 10.02)),
 ])
@@ -581,3 +586,54 @@ def test_noise_all_weights_zero(method, how):
                          min_separation_arcsec=5.0)
     assert np.isfinite(res.noise_jy) and np.isfinite(res.target_flux_jy)
     assert res.target_flux_jy == pytest.approx(ref.target_flux_jy, rel=1e-9)
+
+
+@pytest.mark.parametrize("pointings, src", [
+    ([[359.9, 10.0], [0.1, 10.0]], (359.99, 10.02)),      # a mosaic straddling RA 0
+    ([[0.0, 89.8], [180.0, 89.8]], (90.0, 89.97)),         # two pointings either side of the pole
+])
+def test_imaging_mosaic_across_ra_zero_and_the_pole(pointings, src):
+    from xstack.imaging.image import make_image, mean_direction
+
+    scene = _scene(pointings[0], [_listed("src", [src[0]], [src[1]], 1e-3)],
+                   antennas=range(0, 27, 2), pointings={"mode": "list", "positions": pointings},
+                   effects={"w_term": True, "primary_beam": "standard"},
+                   observation={"hour_angle": [-3.0, 3.0], "integration": 1200.0,
+                                "time_per_pointing": 9600.0})
+    parts, _ = simulate_partitions(scene)
+    assert len(parts) == 2
+    n, cell = 128, 10.0
+    res = make_image(parts, size=n, cell_arcsec=cell)
+    # the mosaic centre is the mean direction, on the right side of RA 0 / of the pole
+    centre = np.degrees(mean_direction(np.radians(pointings)))
+    cen = SkyCoord(*centre, unit="deg")
+    for p in pointings:
+        assert cen.separation(SkyCoord(*p, unit="deg")).deg == pytest.approx(
+            0.5 * SkyCoord(*pointings[0], unit="deg").separation(
+                SkyCoord(*pointings[1], unit="deg")).deg, rel=1e-9)
+    truth = _sin_wcs(centre, n, cell)
+    img = np.nan_to_num(res.image, nan=-np.inf)
+    x, y, _, _ = _peak(img)
+    want_x, want_y = truth.world_to_pixel_values(*src)
+    assert abs(x - want_x) < 0.15 and abs(y - want_y) < 0.15
+    ra, dec = res.wcs.pixel_to_world_values(x, y)
+    assert SkyCoord(*src, unit="deg").separation(SkyCoord(ra, dec, unit="deg")).arcsec \
+        < 0.15 * cell
+    # primary-beam corrected: the true flux
+    assert np.nanmax(res.image) == pytest.approx(1e-3, rel=0.03)
+
+
+def test_image_header_at_the_north_pole_keeps_its_orientation():
+    from xstack.imaging.fitsio import celestial_wcs, grid_of, make_header
+
+    h = make_header(64, 64, 10.0, (0.3, math.pi / 2))
+    w = celestial_wcs(h)
+    # one pixel north (y + 1) is 10" from the pole towards RA = ra0 + 180 deg (m > 0)
+    ra, dec = w.pixel_to_world_values(32, 33)
+    assert SkyCoord(ra, dec, unit="deg").separation(
+        SkyCoord(math.degrees(0.3) + 180.0, 90.0 - 10 / 3600, unit="deg")).arcsec < 1e-6
+    assert grid_of(h)["cell_arcsec"] == pytest.approx(10.0)
+    # a third-party header without LONPOLE at CRVAL2 = 90 is a grid turned by 180 deg
+    del h["LONPOLE"]
+    with pytest.raises(XstackError, match="LONPOLE"):
+        grid_of(h)

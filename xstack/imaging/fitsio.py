@@ -7,6 +7,7 @@ Layout written by xstack (``write_image``)::
     CTYPE2 = 'DEC--SIN'  CDELT2 = +cell/3600
     CRPIX1 = nx // 2 + 1,  CRPIX2 = ny // 2 + 1   (1-based: the phase centre pixel)
     CRVAL1, CRVAL2 = phase centre (deg, ICRS; RADESYS = 'ICRS')
+    LONPOLE = 180 (the default except at CRVAL2 = +90, where it keeps the orientation)
     CTYPE3 = 'FREQ'   (CRVAL3 = weighted mean frequency, Hz; degenerate)
     CTYPE4 = 'STOKES' (CRVAL4 = 1 = I; degenerate)
     BUNIT  = 'Jy/beam' (image, residual), 'Jy/pixel' (model), '' (PSF)
@@ -70,6 +71,9 @@ def make_header(ny: int, nx: int, cell_arcsec: float, phase_center: tuple[float,
     h["CDELT2"] = float(cell_arcsec) / 3600.0
     h["CRPIX2"] = float(ny // 2 + 1)
     h["CUNIT2"] = "deg"
+    # FITS defaults LONPOLE to 0 (not 180) when CRVAL2 is exactly +90, which would flip an
+    # image centred on the north pole; 180 keeps the l, m orientation of every other centre
+    h["LONPOLE"] = 180.0
     h["CTYPE3"] = "FREQ"
     h["CRVAL3"] = float(frequency) if frequency else 1.0
     h["CDELT3"] = float(bandwidth) if bandwidth else 1.0
@@ -183,6 +187,11 @@ def grid_of(header: fits.Header) -> dict[str, Any]:
     for key in ("PC1_2", "PC2_1", "CD1_2", "CD2_1", "CROTA2"):
         if abs(float(header.get(key, 0.0))) > 1e-12:
             raise XstackError("rotated image grids are not supported")
+    # FITS's default LONPOLE is 0 at CRVAL2 = +90 (180 elsewhere): a grid turned by 180 deg
+    lonpole = float(header.get("LONPOLE", 0.0 if float(header.get("CRVAL2", 0.0)) == 90.0
+                               else 180.0))
+    if abs(lonpole % 360.0 - 180.0) > 1e-9:
+        raise XstackError(f"rotated image grids are not supported (LONPOLE = {lonpole:g})")
     cd1 = float(header.get("CDELT1", 0.0))
     cd2 = float(header.get("CDELT2", 0.0))
     if not (cd1 < 0 < cd2) or not math.isclose(-cd1, cd2, rel_tol=1e-9):

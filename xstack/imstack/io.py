@@ -228,6 +228,7 @@ def stamp_header(ra0: float, dec0: float, size: int, pixel_matrix_deg: np.ndarra
     wcs.wcs.ctype = ["RA---SIN", "DEC--SIN"]
     wcs.wcs.cunit = ["deg", "deg"]
     wcs.wcs.crval = [ra0, dec0]
+    wcs.wcs.lonpole = 180.0  # FITS's default flips to 0 at dec0 = +90 exactly
     wcs.wcs.crpix = [c + 1.0, c + 1.0]
     m = np.asarray(pixel_matrix_deg, dtype=np.float64)
     if abs(m[0, 1]) < 1e-12 * abs(m[0, 0]) and abs(m[1, 0]) < 1e-12 * abs(m[1, 1]):

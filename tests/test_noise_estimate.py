@@ -261,3 +261,19 @@ def test_random_positions_avoid_bright_sources_and_stay_in_field():
     # roughly uniform in area: half of the positions inside 1/sqrt(2) of the radius
     frac = np.mean(angular_separation(pra, pdec, *CENTRE) < rmax / np.sqrt(2))
     assert 0.35 < frac < 0.65
+
+
+def test_targets_beyond_the_first_null_never_enter_a_pointing():
+    # with no cutoff, an Airy sidelobe (A ~ 0.018) must still not count as inside the beam
+    ds, _, _ = noise_field(3)
+    beam = standard_beam("VLA", 25.0, model="airy")
+    centre = tuple(float(x) for x in ds.attrs["phase_center"])
+    r_null = float(beam.first_null(float(ds["frequency"].max())))
+    assert float(beam(1.3 * r_null, float(ds["frequency"].max()))) > 0.01
+    ra = np.full(3, centre[0])
+    dec = centre[1] + np.array([0.3, 1.3, 1.6]) * r_null
+    with_sidelobes = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="analytic",
+                                    primary_beam="airy", pb_cutoff=0.0)
+    alone = estimate_noise(ds, (np.degrees(ra[:1]), np.degrees(dec[:1])), method="analytic",
+                           primary_beam="airy", pb_cutoff=0.0)
+    assert with_sidelobes.noise_jy == pytest.approx(alone.noise_jy, rel=1e-12)

@@ -264,10 +264,17 @@ def block_buffers(spec: BlockSpec, n_time: int, n_baseline: int) -> dict[str, np
             "EFFECTIVE_INTEGRATION_TIME": np.empty(n, dtype=np.float64)}
 
 
+def batch_rows(spec: BlockSpec) -> int:
+    """Rows :func:`read_block` copies out of casacore per call (~:data:`READ_BATCH_BYTES`)."""
+    cell_bytes = spec.n_channels * spec.n_pols * (np.dtype(spec.vis_dtype).itemsize + 5)
+    return max(1, READ_BATCH_BYTES // cell_bytes)
+
+
 def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: np.ndarray,
                n_time: int, n_baseline: int, times: np.ndarray,
                buffers: dict[str, np.ndarray] | None = None,
-               on_batch: Callable[[int, int], None] | None = None) -> dict[str, np.ndarray]:
+               on_batch: Callable[[int, int], None] | None = None,
+               vis_batch: Callable[[int, int], np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Read MS rows into dense (time, baseline, ...) arrays of one block.
 
     Parameters
@@ -290,6 +297,11 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
         while the next batch is read. Called only for batches whose rows land on
         consecutive cells (always the case when ``rows`` are consecutive and fill every cell
         in order); other cells are final only when the function returns.
+    vis_batch
+        With ``on_batch``: ``vis_batch(start, stop)`` returns the (stop - start, channel,
+        polarization) array that the visibilities of such a batch are copied into instead of
+        the block buffer (so a caller writing them out batch by batch needs no block-sized
+        buffer for them); the returned VISIBILITY then lacks those cells.
 
     Returns
     -------
@@ -335,8 +347,7 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
         big.append(("FLAG", flag))
     if spec.weight_source == "WEIGHT_SPECTRUM":
         big.append(("WEIGHT_SPECTRUM", weight))
-    cell_bytes = nc * npol * (np.dtype(spec.vis_dtype).itemsize + 5)
-    batch = max(1, READ_BATCH_BYTES // cell_bytes)
+    batch = batch_rows(spec)
     for k in range(0, rows.size, batch):
         r, c = rows[k:k + batch], cell_index[k:k + batch]
         n = r.size
@@ -349,7 +360,11 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
                     # rows map one-to-one onto consecutive cells: casacore writes in place
                     c0 = int(c[0])
                     for col, dest in big:
-                        tab.getcolnp(col, dest[c0:c0 + n], startrow=int(r[0]), nrow=n)
+                        if dest is vis and vis_batch is not None and on_batch is not None:
+                            out = vis_batch(c0, c0 + n)
+                        else:
+                            out = dest[c0:c0 + n]
+                        tab.getcolnp(col, out, startrow=int(r[0]), nrow=n)
                     got = {col: tab.getcol(col, startrow=int(r[0]), nrow=n) for col in small}
                 else:
                     got = _get_rows(tab, r, [col for col, _ in big] + small)

@@ -463,15 +463,7 @@ def _edge_targets(centre, beam, fmax):
     return np.array([t.ra.deg for t in ts]), np.array([t.dec.deg for t in ts]), r_cut
 
 
-@pytest.mark.parametrize("default_field", [
-    False,
-    pytest.param(True, marks=pytest.mark.xfail(strict=True, reason=(
-        "xstack/noise/estimate.py: the default field radius is min(beam radius at the MEAN "
-        "frequency, 1.02 x the farthest target); a target may sit at the cutoff radius of "
-        "the HIGHEST channel (_Pointing.inside needs A >= cutoff in every channel), so "
-        "random positions land up to 2 % beyond it, are not stacked there and the "
-        "realisation has fewer positions than the targets"))),
-])
+@pytest.mark.parametrize("default_field", [False, True])
 def test_noise_random_positions_stay_inside_the_cutoff_at_every_channel(default_field):
     """Targets out to the cutoff radius of the highest channel: every random position must be
     stacked (A >= cutoff in every channel), as the targets are."""

@@ -168,7 +168,9 @@ class _Pointing:
         if self.beam.model == "none":
             raise XstackError("primary_beam='none' has no edge: give field_radius_arcsec to say "
                               "where random positions may be placed")
-        return float(self.beam.radius_at(max(self.beam.cutoff, 1e-3), self.fmid))
+        # the highest channel has the smallest beam: a position must be inside in every
+        # channel (``inside``), so the field for random positions ends where that one does
+        return float(self.beam.radius_at(max(self.beam.cutoff, 1e-3), float(self.freq.max())))
 
 
 def _blocks(pt: _Pointing, uvmin, uvmax):

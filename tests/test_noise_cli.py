@@ -59,3 +59,14 @@ def test_noise_cli_bad_input(tmp_path, capsys):
     assert "too dense" in capsys.readouterr().err
     assert main(["noise", str(store), str(cat), "--uvmax", "1lambda", "--realizations", "3"]) == 1
     assert "no visibilities left" in capsys.readouterr().err
+
+
+def test_noise_cli_engines_agree(tmp_path, capsys):
+    store, cat = _setup(tmp_path)
+    out = {}
+    for engine in ("antenna", "row"):
+        assert main(["noise", str(store), str(cat), "--method", "random", "--realizations", "6",
+                     "--engine", engine, "--json"]) == 0
+        out[engine] = json.loads(capsys.readouterr().out)
+    assert out["antenna"]["engine"] == "antenna" and out["row"]["engine"] == "row"
+    assert abs(out["antenna"]["noise_jy"] / out["row"]["noise_jy"] - 1) < 1e-9

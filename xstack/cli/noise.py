@@ -37,6 +37,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="radius around each pointing for random positions")
     p.add_argument("--psf", help="image domain: dirty beam FITS for --method mc "
                                  "(default: X.psf.fits beside the image)")
+    p.add_argument("--engine", choices=("auto", "antenna", "row"), default="auto",
+                   help="uv domain: per-antenna phasors where the UVW allow it (auto), always "
+                   "(antenna: an error where they do not) or per-row phasors (row)")
     p.add_argument("--png", help="histogram of the realisations (PNG)")
     p.add_argument("--profile-png", help="uv-profiles of the realisations (PNG; mc/random)")
     p.add_argument("--profile-bins", type=int, default=20)
@@ -72,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         primary_beam=(("auto" if domain == "image" else None) if args.primary_beam == "auto"
                       else args.primary_beam),
         pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
-        field_radius_arcsec=args.field_radius,
+        field_radius_arcsec=args.field_radius, engine=args.engine,
         profile_bins=args.profile_bins if args.profile_png else 0,
         progress=not args.no_progress and sys.stderr.isatty())
     files = {}

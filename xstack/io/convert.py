@@ -292,8 +292,9 @@ def _placeholders(plan: _Plan, spec: msread.BlockSpec, ct: int, cb: int) -> dict
 
 #: Threads writing chunks while the main thread reads the next ones. python-casacore holds
 #: the GIL while it copies rows, so writers progress only in GIL-free calls (file writes,
-#: blosc): two let one chunk file's kernel write overlap another's compression.
-WRITE_THREADS = 2
+#: blosc, zstd). On a loaded 2-core machine a second writer thread made conversion slower
+#: (more contention, no more overlap: benchmarks/bench_convert.py), hence one.
+WRITE_THREADS = 1
 
 
 class _BatchRing:
@@ -346,6 +347,7 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
     write, without its per-chunk overhead) where the array's codecs allow, else by zarr.
     """
     from concurrent.futures import Future, ThreadPoolExecutor
+    from functools import partial
 
     import zarr
 
@@ -386,6 +388,30 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
             chunk[n_valid:] = files.fill_value
         files.write(coords, chunk)
 
+    def stream_batch(streamed: dict[str, tuple[int, list[Future]]], chunks: dict[str, np.ndarray],
+                     n_streamed: list[int], ring: _BatchRing, c0: int, c1: int) -> None:
+        """Hand cells c0:c1 of the streamed arrays, just read, to the writers."""
+        n_streamed[0] += c1 - c0
+        for var, (fd, batches) in streamed.items():
+            if var == "VISIBILITY":
+                cells = ring.slots[ring.current][:c1 - c0]
+            else:
+                flat = chunks[var]
+                cells = flat.reshape(flat.shape[0] * flat.shape[1], -1)[c0:c1]
+            fut = pool.submit(ChunkFiles.write_at, fd, cells, c0 * cells[0].nbytes)
+            batches.append(fut)
+            if var == "VISIBILITY":
+                ring.writes[ring.current].append(fut)
+
+    def write_others(files: dict[str, ChunkFiles | None], streamed: dict, chunks: dict[str, np.ndarray],
+                     coords: dict[str, tuple[int, ...]], n_valid: int, futures: list[Future],
+                     early: set[str]) -> None:
+        """Hand the chunks of the arrays that are not streamed to the writers."""
+        for var, f in files.items():
+            if var not in streamed and f is not None:
+                futures.append(pool.submit(write_chunk, f, coords[var], chunks[var], n_valid))
+                early.add(var)
+
     def write_zarr(array: Any, values: np.ndarray, t0: int, t1: int, b0: int, b1: int) -> None:
         array[t0:t1, b0:b1] = values
 
@@ -418,28 +444,21 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
                                 open_fds.add(fd)
                                 streamed[var] = (fd, [])
 
-                    def on_batch(c0: int, c1: int, streamed: dict = streamed, chunks: dict = chunks,
-                                 n_streamed: list[int] = n_streamed, ring: _BatchRing = ring) -> None:
-                        n_streamed[0] += c1 - c0
-                        for var, (fd, batches) in streamed.items():
-                            if var == "VISIBILITY":
-                                cells = ring.slots[ring.current][:c1 - c0]
-                            else:
-                                flat = chunks[var]
-                                cells = flat.reshape(flat.shape[0] * flat.shape[1], -1)[c0:c1]
-                            fut = pool.submit(ChunkFiles.write_at, fd, cells, c0 * cells[0].nbytes)
-                            batches.append(fut)
-                            if var == "VISIBILITY":
-                                ring.writes[ring.current].append(fut)
-
-                    block = msread.read_block(
-                        spec, rows, ti, bi, t1 - t0, b1 - b0, plan.times[t0:t1], buffers=buf,
-                        on_batch=on_batch if streamed else None,
-                        vis_batch=(lambda c0, c1, ring=ring: ring.take(c1 - c0)) if "VISIBILITY" in streamed
-                        else None)
                     futures = in_flight[slot]
+                    early: set[str] = set()  # written while the visibilities are still read
+                    hooks = {}
+                    if streamed:
+                        hooks = {"on_batch": partial(stream_batch, streamed, chunks, n_streamed, ring),
+                                 "on_others": partial(write_others, files, streamed, chunks, coords, t1 - t0,
+                                                      futures, early)}
+                        if "VISIBILITY" in streamed:
+                            hooks["vis_batch"] = lambda c0, c1, ring=ring: ring.take(c1 - c0)
+                    block = msread.read_block(spec, rows, ti, bi, t1 - t0, b1 - b0, plan.times[t0:t1],
+                                              buffers=buf, **hooks)
                     for var, a in arrays.items():
                         f = files[var]
+                        if var in early:
+                            continue
                         if var in streamed:
                             fd, batches = streamed[var]
                             futures.append(pool.submit(finish_raw, f, fd, batches, chunks[var], t1 - t0,

@@ -274,7 +274,8 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
                n_time: int, n_baseline: int, times: np.ndarray,
                buffers: dict[str, np.ndarray] | None = None,
                on_batch: Callable[[int, int], None] | None = None,
-               vis_batch: Callable[[int, int], np.ndarray] | None = None) -> dict[str, np.ndarray]:
+               vis_batch: Callable[[int, int], np.ndarray] | None = None,
+               on_others: Callable[[], None] | None = None) -> dict[str, np.ndarray]:
     """Read MS rows into dense (time, baseline, ...) arrays of one block.
 
     Parameters
@@ -302,6 +303,12 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
         polarization) array that the visibilities of such a batch are copied into instead of
         the block buffer (so a caller writing them out batch by batch needs no block-sized
         buffer for them); the returned VISIBILITY then lacks those cells.
+    on_others
+        With ``on_batch``, for a block whose consecutive rows fill every cell in order:
+        every column but the visibilities is read first, then ``on_others()`` is called
+        (every returned array but VISIBILITY is final), then the visibilities, batch by
+        batch, each followed by ``on_batch`` - so a caller can compress the other arrays
+        while the visibilities are still being read.
 
     Returns
     -------
@@ -348,6 +355,26 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
     if spec.weight_source == "WEIGHT_SPECTRUM":
         big.append(("WEIGHT_SPECTRUM", weight))
     batch = batch_rows(spec)
+    # (columns, small columns, visibilities only?) of each pass over the rows
+    passes: list[tuple[list[tuple[str, np.ndarray]], list[str], bool]] = [(big, small, False)]
+    if on_others is not None and on_batch is not None and rows.size == ncell \
+            and int(rows[-1]) - int(rows[0]) + 1 == ncell and bool(np.all(cell_index == np.arange(ncell))):
+        passes = [(big[1:], small, False), (big[:1], [], True)]
+    for cols, small_cols, vis_pass in passes:
+        if vis_pass and on_others is not None:
+            on_others()
+        _read_pass(spec, rows, cell_index, batch, cols, small_cols, vis_pass, cells, on_batch, vis_batch)
+    return result
+
+
+def _read_pass(spec: BlockSpec, rows: np.ndarray, cell_index: np.ndarray, batch: int,
+               big: list[tuple[str, np.ndarray]], small: list[str], vis_only: bool,
+               cells: dict[str, np.ndarray], on_batch: Callable[[int, int], None] | None,
+               vis_batch: Callable[[int, int], np.ndarray] | None) -> None:
+    """One pass of :func:`read_block` over its rows, reading ``big`` and ``small`` columns."""
+    nc, npol = spec.n_channels, spec.n_pols
+    vis, weight, flag, uvw = cells["VISIBILITY"], cells["WEIGHT"], cells["FLAG"], cells["UVW"]
+    centroid, exposure = cells["TIME_CENTROID"], cells["EFFECTIVE_INTEGRATION_TIME"]
     for k in range(0, rows.size, batch):
         r, c = rows[k:k + batch], cell_index[k:k + batch]
         n = r.size
@@ -371,6 +398,10 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
             except RuntimeError as exc:
                 raise XstackError(f"{spec.path}: cannot read rows {int(r[0])}-{int(r[-1])} "
                                   f"({exc})") from None
+        if vis_only:  # the second pass of a direct block (the other columns are done)
+            if on_batch is not None:
+                on_batch(int(c[0]), int(c[0]) + n)
+            continue
         if direct:
             sl = slice(int(c[0]), int(c[0]) + n)
             if not spec.flag_defined:
@@ -405,6 +436,5 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
             centroid[c] = got["TIME_CENTROID"]
         if spec.has_exposure:
             exposure[c] = got["EXPOSURE"]
-        if direct and on_batch is not None:
+        if direct and on_batch is not None and any(dest is vis for _, dest in big):
             on_batch(int(c[0]), int(c[0]) + n)
-    return result

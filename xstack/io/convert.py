@@ -3,7 +3,11 @@
 The MS is read one output chunk (partition x time chunk x baseline chunk) at a time: its rows
 are copied by python-casacore (under a process-wide lock) straight into reusable buffers laid
 out as the dense (time, baseline_id, frequency, polarization) grid of the xstack schema, and
-a second thread compresses and writes the previous chunk into the zarr store. The store is
+a writer thread writes them into the zarr store meanwhile. Chunk files are written by
+:class:`xstack.io._store.ChunkFiles` - the bytes zarr would write, without zarr's per-chunk
+overhead. When a chunk's rows fill its cells in order (a time-ordered MS), the other columns
+are read first and compressed while the visibilities are read, and the (uncompressed)
+visibilities go to their chunk file batch by batch through a few small buffers. The store is
 created and completed by :func:`xstack.io._store.region_store`, which follows the atomic
 protocol of :func:`xstack.schema.write_store` (temporary name, completion flag last,
 rename). Peak memory is therefore two chunks plus a small per-row index (~50 bytes per MS
@@ -341,8 +345,10 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
     The main thread reads (casacore) into one of two reusable buffer sets while
     :data:`WRITE_THREADS` threads write the previous chunk from the other, so memory holds
     at most two chunks. Uncompressed arrays (VISIBILITY) of a chunk whose rows fill its
-    cells in order are written batch by batch as they are read, so reading and writing
-    overlap within a chunk too (an MS of one chunk would otherwise read, then write).
+    cells in order are written batch by batch as they are read (visibilities through a
+    :class:`_BatchRing`), after the other arrays of the chunk were read and handed to the
+    writers, so reading and writing overlap within a chunk too (an MS of one chunk would
+    otherwise read, then write).
     Chunk files are written by :class:`xstack.io._store.ChunkFiles` (the bytes zarr would
     write, without its per-chunk overhead) where the array's codecs allow, else by zarr.
     """

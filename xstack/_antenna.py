@@ -121,3 +121,9 @@ def antenna_layout(uvw: np.ndarray, antenna1: np.ndarray, antenna2: np.ndarray,
 #: Default tolerance (radians) of the antenna factorisation's phase error, see
 #: :meth:`AntennaLayout.phase_error`. Simulated and correlator UVW reach ~1e-12.
 ANTENNA_TOL_RAD = 1e-9
+
+
+#: Automatic engine choices take the antenna path only with at least this many fitted rows
+#: per used antenna and time: the antenna phasors cost about what the sine/cosine of a row
+#: saves.
+MIN_ROWS_PER_ANTENNA = 2.0

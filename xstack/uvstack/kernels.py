@@ -20,6 +20,14 @@ Engines
     channels, which bounds the recurrence error by ``reseed`` times a few 1e-16
     (measured in ``tests/test_uvstack_kernels.py``). Unevenly spaced channels are seeded exactly
     in every channel.
+``antenna``
+    :func:`phasor_antenna`: the same phasor through per-antenna factors for rows ordered
+    (time, baseline) with known antenna ids. The baseline phasor factorises,
+    ``exp(-2 pi i nu/c b.s) = E_a1 conj(E_a2)`` with ``E_a = exp(-2 pi i nu/c uvw_a.s)``, so
+    the sine/cosine and the channel recurrence run per (time, antenna, position) instead of
+    per (time, baseline, position); each (row, channel, position) costs four multiply-adds.
+    The antenna UVW are solved by least squares (:mod:`xstack._antenna`) and used only when
+    the bound of the phase error this can cause is below a tolerance (default 1e-9 rad).
 ``numpy``
     :func:`stack_phasor_numpy`: plain vectorised numpy (``np.exp`` of the full phase per
     channel), in blocks of rows. The slow but obviously-correct path.
@@ -42,6 +50,7 @@ import threading
 import numba
 import numpy as np
 
+from xstack._antenna import ANTENNA_TOL_RAD, FactorisationError, antenna_layout
 from xstack._phase import cis_minus_turns as _cis_minus_turns
 from xstack.coords import SPEED_OF_LIGHT
 
@@ -101,6 +110,87 @@ def _phasor_numba(uvw, fc, l, m, n1, coef_t, step, even, reseed, out_re, out_im)
                 for k in range(nsrc):
                     acc_r += coef_t[c, k] * zr[k]
                     acc_i += coef_t[c, k] * zi[k]
+                out_re[row, c] = acc_r
+                out_im[row, c] = acc_i
+
+
+@numba.njit(parallel=True, fastmath={"reassoc", "contract"}, cache=True)
+def _phasor_antenna_numba(ant_uvw, ant_used, a1, a2, rows, fc, l, m, n1, coef_t, step, even,
+                          reseed, out_re, out_im):
+    """Fill out_re/out_im (ntime * nbl, nchan) at ``rows`` from per-antenna phasors.
+
+    ant_uvw: (ntime, nant, 3) metres; rows are time-major, row = t * nbl + baseline, with
+    baseline UVW = ant_uvw[t, a1] - ant_uvw[t, a2]. Per time the sine/cosine are evaluated
+    per (antenna, position); each (row, channel, position) then costs four multiply-adds.
+    """
+    ntime = ant_uvw.shape[0]
+    nant = ant_uvw.shape[1]
+    nbl = a1.shape[0]
+    nchan = fc.shape[0]
+    nsrc = l.shape[0]
+    for t in numba.prange(ntime):
+        d = np.empty((nant, nsrc))
+        er = np.empty((nant, nsrc))
+        ei = np.empty((nant, nsrc))
+        sr = np.empty((nant, nsrc))
+        si = np.empty((nant, nsrc))
+        fr = np.empty((nant, nsrc))
+        fi = np.empty((nant, nsrc))
+        for ant in range(nant):
+            if not ant_used[t, ant]:
+                continue
+            u = ant_uvw[t, ant, 0]
+            v = ant_uvw[t, ant, 1]
+            w = ant_uvw[t, ant, 2]
+            # 1-D views: indexing 2-D arrays inside the inner loops defeats vectorisation
+            da = d[ant]
+            for k in range(nsrc):
+                da[k] = u * l[k] + v * m[k] + w * n1[k]
+            if even and nchan > 1:
+                sra = sr[ant]
+                sia = si[ant]
+                for k in range(nsrc):
+                    sra[k], sia[k] = _cis_minus_turns(da[k] * step)
+        for c in range(nchan):
+            f = fc[c]
+            seed = (not even) or c % reseed == 0
+            cr = coef_t[c]
+            for ant in range(nant):
+                if not ant_used[t, ant]:
+                    continue
+                da = d[ant]
+                era = er[ant]
+                eia = ei[ant]
+                if seed:
+                    for k in range(nsrc):
+                        era[k], eia[k] = _cis_minus_turns(da[k] * f)
+                else:
+                    sra = sr[ant]
+                    sia = si[ant]
+                    for k in range(nsrc):
+                        a = era[k] * sra[k] - eia[k] * sia[k]
+                        eia[k] = era[k] * sia[k] + eia[k] * sra[k]
+                        era[k] = a
+                # F = coef E once per antenna: a baseline then needs no coefficient load
+                fra = fr[ant]
+                fia = fi[ant]
+                for k in range(nsrc):
+                    fra[k] = cr[k] * era[k]
+                    fia[k] = cr[k] * eia[k]
+            for bl in range(nbl):
+                row = t * nbl + bl
+                if not rows[row]:
+                    continue
+                f1r = fr[a1[bl]]
+                f1i = fi[a1[bl]]
+                e2r = er[a2[bl]]
+                e2i = ei[a2[bl]]
+                acc_r = 0.0
+                acc_i = 0.0
+                for k in range(nsrc):
+                    # coef E_a1 conj(E_a2): the baseline phasor of position k
+                    acc_r += f1r[k] * e2r[k] + f1i[k] * e2i[k]
+                    acc_i += f1i[k] * e2r[k] - f1r[k] * e2i[k]
                 out_re[row, c] = acc_r
                 out_im[row, c] = acc_i
 
@@ -220,6 +310,98 @@ def phasor_from_coefficients(uvw, frequency, l, m, n_minus_1, coef, *,
     out.real = out_re
     out.imag = out_im
     return out
+
+
+def phasor_antenna(uvw, frequency, l, m, n_minus_1, coef, antenna1, antenna2, *,
+                   rows: np.ndarray | None = None, reseed: int = DEFAULT_RESEED,
+                   tol_rad: float = ANTENNA_TOL_RAD, min_rows_per_antenna: float = 0.0
+                   ) -> tuple[np.ndarray, float]:
+    """:func:`phasor_from_coefficients` through per-antenna phasors (same values to ~1e-15).
+
+    The phasor of baseline (a1, a2) factorises,
+    ``exp(-2 pi i nu/c (u l + v m + w (n-1))) = E_a1 conj(E_a2)`` with
+    ``E_a = exp(-2 pi i nu/c (u_a l + v_a m + w_a (n-1)))``, so per integration the
+    sine/cosine (and the channel recurrence) are evaluated per antenna instead of per
+    baseline. The antenna UVW are solved per integration by least squares
+    (:func:`xstack._antenna.antenna_layout`) over the wanted rows with finite UVW, leaving
+    out cross-baseline rows of UVW exactly zero (missing cells of an irregular grid); rows
+    left out get the per-row (numba) kernel, so every wanted row is exact.
+
+    Parameters
+    ----------
+    uvw : (ntime * nbl, 3) float64
+        Baseline coordinates in metres, rows ordered time-major (time, baseline).
+    frequency : (nchan,) array
+        Channel frequencies, Hz.
+    l, m, n_minus_1 : (nsrc,) arrays
+        Direction cosines of the positions.
+    coef : (nsrc, nchan) array
+        Normalised coefficients ``W_k A_kc^-1 / sum W``.
+    antenna1, antenna2 : (nbl,) int arrays
+        Antenna ids of the baselines.
+    rows : (ntime * nbl,) bool, optional
+        Rows whose phasor is wanted (default all); the others are returned as 0.
+    reseed
+        Exact re-seeding interval of the channel recurrence.
+    tol_rad
+        Largest accepted bound of the factorisation's phase error
+        (:meth:`xstack._antenna.AntennaLayout.phase_error`), radians.
+    min_rows_per_antenna
+        Refuse layouts with fewer fitted rows per used (time, antenna): no speed gain.
+
+    Returns
+    -------
+    phasor : (ntime * nbl, nchan) complex128
+    phase_error : float
+        The bound of the factorisation's phase error, radians.
+
+    Raises
+    ------
+    FactorisationError
+        The rows are not whole integrations of the baselines, the bound exceeds
+        ``tol_rad``, or there are too few rows per antenna.
+    """
+    uvw = np.ascontiguousarray(uvw, dtype=np.float64)
+    freq = np.asarray(frequency, dtype=np.float64)
+    l_c, m_c, n_c = (np.ascontiguousarray(x, dtype=np.float64) for x in (l, m, n_minus_1))
+    coef = np.asarray(coef, dtype=np.float64)
+    a1 = np.asarray(antenna1).ravel()
+    a2 = np.asarray(antenna2).ravel()
+    nrow, nchan = uvw.shape[0], freq.size
+    want = np.ones(nrow, dtype=bool) if rows is None else np.asarray(rows, dtype=bool).ravel()
+    if a1.size == 0 or a1.size != a2.size or nrow % a1.size:
+        raise FactorisationError(f"{nrow} rows are not whole times of {a1.size} baselines")
+    cross = np.tile(a1 != a2, nrow // a1.size)
+    fit = want & ~(cross & np.all(uvw == 0.0, axis=1))
+    layout = antenna_layout(uvw, a1, a2, row_ok=fit)
+    if layout.rows_per_antenna < min_rows_per_antenna:
+        raise FactorisationError(f"{layout.rows_per_antenna:.2f} rows per antenna: no gain")
+    err = layout.phase_error(l_c, m_c, n_c, freq)
+    if not err <= tol_rad:
+        raise FactorisationError(f"antenna UVW reproduce the baseline UVW only to a phase error "
+                                 f"of {err:.3g} rad (tolerance {tol_rad:.3g} rad)")
+    out = np.zeros((nrow, nchan), dtype=np.complex128)
+    if nrow == 0 or l_c.size == 0:
+        return out, err
+    ant_uvw = np.ascontiguousarray(layout.uvw)
+    umax = float(np.max(np.abs(ant_uvw))) if ant_uvw.size else 0.0
+    lmax = float(max(np.max(np.abs(l_c)), np.max(np.abs(m_c)), np.max(np.abs(n_c))))
+    even = channels_evenly_spaced(freq, umax, lmax)
+    step = (freq[1] - freq[0]) / SPEED_OF_LIGHT if nchan > 1 else 0.0
+    out_re = np.zeros((nrow, nchan))
+    out_im = np.zeros((nrow, nchan))
+    with _KERNEL_LOCK:
+        _phasor_antenna_numba(ant_uvw, layout.used, layout.antenna1, layout.antenna2,
+                              layout.rows, freq / SPEED_OF_LIGHT, l_c, m_c, n_c,
+                              np.ascontiguousarray(coef.T), step, even, max(1, int(reseed)),
+                              out_re, out_im)
+    out.real = out_re
+    out.imag = out_im
+    rest = np.flatnonzero(want & ~layout.rows)
+    if rest.size:
+        out[rest] = phasor_from_coefficients(uvw[rest], freq, l_c, m_c, n_c, coef,
+                                             reseed=reseed, engine="numba")
+    return out, err
 
 
 def stack_phasor_numpy(uvw, frequency, l, m, n_minus_1, coef, block_bytes: int = 64 * 2**20):

@@ -27,6 +27,7 @@ import numpy as np
 import xarray as xr
 from astropy.table import Table
 
+from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack.beams import standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, parse_distance, radec_to_lmn, read_catalog
 from xstack.errors import XstackError
@@ -35,7 +36,12 @@ from xstack.uvstack import kernels
 from xstack.uvstack.profile import plot_uv_profile, uv_profile  # noqa: F401  (public re-export)
 
 WEIGHTINGS = ("none", "pb", "sigma2", "column")
-ENGINES = ("auto", "numba", "numpy", "nufft")
+ENGINES = ("auto", "antenna", "numba", "numpy", "nufft")
+#: Engines that evaluate a block of rows, in the order of their row counters in the sums
+#: (after the 5 flux sums of :func:`kernels.stack_sums`) and their codes in the trailing
+#: column of a chunk's shared phasor.
+_ROW_ENGINES = ("numba", "antenna")
+_NSUMS = 5
 PARALLEL_HANDS = ("XX", "YY", "RR", "LL")
 
 
@@ -276,43 +282,84 @@ def uv_mask(uvw: np.ndarray, frequency: np.ndarray, lo, hi) -> np.ndarray | None
 
 # --- block functions (top level: picklable for dask.distributed) ---------------------------
 
-def _block_phasor(uvw_block, params, frequency, engine):
-    """Phasor for one (time, baseline) block: params = [l, m, n-1, coef_0..coef_{nchan-1}]."""
+def _block_phasor(uvw_block, params, frequency, engine, antennas=None, rows=None,
+                  tol_rad=ANTENNA_TOL_RAD):
+    """Phasor of one (time, baseline) block and the engine that computed it.
+
+    params = [l, m, n-1, coef_0..coef_{nchan-1}]; ``antennas`` = (antenna1, antenna2) ids of
+    the block's baselines. ``auto`` takes the per-antenna kernel when the block's baseline UVW
+    factorise to ``tol_rad`` (and it saves work), else the per-row ``numba`` kernel;
+    ``antenna`` raises :class:`XstackError` where it does not apply. ``rows`` (nt * nb bool):
+    the rows whose phasor is needed (the antenna path returns 0 for the others).
+    """
     nt, nb = uvw_block.shape[:2]
     uvw = uvw_block.reshape(nt * nb, 3)
     l, m, n1 = params[:, 0], params[:, 1], params[:, 2]
     coef = params[:, 3:]
+    if engine in ("auto", "antenna"):
+        try:
+            if antennas is None:
+                raise kernels.FactorisationError("no baseline antenna ids in the data")
+            ph, _ = kernels.phasor_antenna(
+                uvw, frequency, l, m, n1, coef, *antennas, rows=rows, tol_rad=tol_rad,
+                min_rows_per_antenna=MIN_ROWS_PER_ANTENNA if engine == "auto" else 0.0)
+            return ph.reshape(nt, nb, len(frequency)), "antenna"
+        except kernels.FactorisationError as exc:
+            if engine == "antenna":
+                raise XstackError(f"engine='antenna' is not valid for these data: {exc}") from exc
+        engine = "numba"
     ph = kernels.phasor_from_coefficients(uvw, frequency, l, m, n1, coef, engine=engine)
-    return ph.reshape(nt, nb, len(frequency))
+    return ph.reshape(nt, nb, len(frequency)), engine
 
 
 #: Rows per phasor evaluation inside a chunk: bounds the phasor temporaries to ~20 MB
 _ROWS_PER_STEP = 65536
 
 
-def _block_stack_vis(vis, uvw, params, frequency, engine):
-    nt, nb, nc, npol = vis.shape
+def _steps(nt, nb):
+    """(time slice, baseline slice) sub-blocks of about ``_ROWS_PER_STEP`` rows.
+
+    Whole integrations when they fit (the antenna path factorises per integration), else
+    baseline ranges of one integration (a subset of baselines factorises as well).
+    """
+    if nb <= _ROWS_PER_STEP:
+        tstep = max(1, _ROWS_PER_STEP // max(nb, 1))
+        for t0 in range(0, nt, tstep):
+            yield slice(t0, t0 + tstep), slice(None)
+    else:
+        for t0 in range(nt):
+            for b0 in range(0, nb, _ROWS_PER_STEP):
+                yield slice(t0, t0 + 1), slice(b0, b0 + _ROWS_PER_STEP)
+
+
+def _antennas(a1, a2, bsl):
+    return None if a1 is None else (a1[bsl], a2[bsl])
+
+
+def _block_stack_vis(vis, uvw, params, a1, a2, frequency, engine, tol_rad):
     out = np.empty(vis.shape, dtype=vis.dtype)
-    flat_vis = vis.reshape(nt * nb, nc, npol)
-    flat_out = out.reshape(nt * nb, nc, npol)
-    flat_uvw = uvw.reshape(nt * nb, 1, 3)
-    for start in range(0, nt * nb, _ROWS_PER_STEP):
-        sl = slice(start, start + _ROWS_PER_STEP)
-        ph = _block_phasor(flat_uvw[sl], params, frequency, engine)[:, 0]
+    for tsl, bsl in _steps(*vis.shape[:2]):
+        ph, _ = _block_phasor(uvw[tsl, bsl], params, frequency, engine, _antennas(a1, a2, bsl),
+                              tol_rad=tol_rad)
         # NaN under flags stays NaN (flagged); the output keeps the input precision
-        flat_out[sl] = flat_vis[sl] * ph[..., None]
+        out[tsl, bsl] = vis[tsl, bsl] * ph[..., None]
     return out
 
 
-def _block_phasor_chunk(uvw, params, frequency, engine):
-    """The whole chunk's phasor (nt, nb, nchan), complex128: shared by stack and sums."""
+def _block_phasor_chunk(uvw, params, a1, a2, frequency, engine, tol_rad):
+    """The whole chunk's phasor, shared by stack and sums: (nt, nb, nchan + 1) complex128.
+
+    The trailing column holds the index in ``_ROW_ENGINES`` of the engine that computed the
+    row (a dask task returns one array, and the sums count rows per engine).
+    """
     nt, nb = uvw.shape[:2]
-    flat_uvw = uvw.reshape(nt * nb, 1, 3)
-    ph = np.empty((nt * nb, len(frequency)), dtype=np.complex128)
-    for start in range(0, nt * nb, _ROWS_PER_STEP):
-        sl = slice(start, start + _ROWS_PER_STEP)
-        ph[sl] = _block_phasor(flat_uvw[sl], params, frequency, engine)[:, 0]
-    return ph.reshape(nt, nb, len(frequency))
+    nchan = len(frequency)
+    ph = np.empty((nt, nb, nchan + 1), dtype=np.complex128)
+    for tsl, bsl in _steps(nt, nb):
+        ph[tsl, bsl, :nchan], used = _block_phasor(uvw[tsl, bsl], params, frequency, engine,
+                                                   _antennas(a1, a2, bsl), tol_rad=tol_rad)
+        ph[tsl, bsl, nchan] = _ROW_ENGINES.index(used)
+    return ph
 
 
 def _block_apply_phasor(vis, ph):
@@ -320,27 +367,40 @@ def _block_apply_phasor(vis, ph):
     return (vis * ph[..., None]).astype(vis.dtype, copy=False)
 
 
+def _engine_rows(counts):
+    return np.array([counts.get(e, 0) for e in _ROW_ENGINES], dtype=np.float64)
+
+
 def _block_sums_with_phasor(vis, weight, flag, uvw, ph, frequency, pol_mask, lo, hi):
     nt, nb, nc, npol = vis.shape
     n = nt * nb
     vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
     mask = uv_mask(uvw.reshape(n, 3), frequency, lo, hi)
-    total = kernels.stack_sums(vis, weight, flag, ph.reshape(n, nc), pol_mask, mask)
-    return total[None, None, :]
+    ph = ph.reshape(n, nc + 1)
+    total = kernels.stack_sums(vis, weight, flag, ph[:, :nc], pol_mask, mask)
+    codes = np.bincount(ph[:, nc].real.astype(np.int64), minlength=len(_ROW_ENGINES))
+    return np.concatenate([total, codes.astype(np.float64)])[None, None, :]
 
 
-def _block_sums(vis, weight, flag, uvw, params, frequency, engine, pol_mask, lo, hi):
-    nt, nb, nc, npol = vis.shape
-    n = nt * nb
-    vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
-    uvw = uvw.reshape(n, 1, 3)
-    total = np.zeros(5)
-    for start in range(0, n, _ROWS_PER_STEP):
-        sl = slice(start, start + _ROWS_PER_STEP)
-        ph = _block_phasor(uvw[sl], params, frequency, engine)[:, 0]
-        mask = uv_mask(uvw[sl, 0], frequency, lo, hi)
-        total += kernels.stack_sums(vis[sl], weight[sl], flag[sl], ph, pol_mask, mask)
-    return total[None, None, :]
+def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_rad, pol_mask,
+                lo, hi):
+    total = np.zeros(_NSUMS)
+    counts: dict[str, int] = {}
+    pm = np.asarray(pol_mask, dtype=bool)
+    for tsl, bsl in _steps(*vis.shape[:2]):
+        v, w, f, x = (a[tsl, bsl] for a in (vis, weight, flag, uvw))
+        nt, nb, nc, npol = v.shape
+        n = nt * nb
+        v, w, f, x = v.reshape(n, nc, npol), w.reshape(n, nc, npol), f.reshape(n, nc, npol), \
+            x.reshape(n, 3)
+        # the flux needs the phasor only where some selected visibility carries weight
+        rows = np.any(~f[:, :, pm] & (w[:, :, pm] > 0), axis=(1, 2))
+        ph, used = _block_phasor(x.reshape(nt, nb, 3), params, frequency, engine,
+                                 _antennas(a1, a2, bsl), rows=rows, tol_rad=tol_rad)
+        counts[used] = counts.get(used, 0) + n
+        mask = uv_mask(x, frequency, lo, hi)
+        total += kernels.stack_sums(v, w, f, ph.reshape(n, nc), pol_mask, mask)
+    return np.concatenate([total, _engine_rows(counts)])[None, None, :]
 
 
 # --- planning -----------------------------------------------------------------------------
@@ -429,24 +489,35 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
     vis = ds["VISIBILITY"].data
     uvw = ds["UVW"].data
     params = da.from_array(plan.params, chunks=plan.params.shape, name=False)
-    sum_kwargs = dict(dtype=np.float64, concatenate=True, new_axes={"s": 5},
+    # antenna ids per baseline chunk: the antenna engine factorises each block's baselines
+    ants: list[Any] = [None, None, None, None]
+    if "baseline_antenna1_id" in ds and "baseline_antenna2_id" in ds:
+        bchunks = (vis.chunks[1],)
+        ants = [da.from_array(np.asarray(ds[f"baseline_antenna{i}_id"].values), chunks=bchunks,
+                              name=False) if j == 0 else "b" for i in (1, 2) for j in (0, 1)]
+    nsums = _NSUMS + len(_ROW_ENGINES)
+    tol = options["_antenna_tol_rad"]
+    sum_kwargs = dict(dtype=np.float64, concatenate=True, new_axes={"s": nsums},
                       adjust_chunks={"t": 1, "b": 1}, frequency=freq, pol_mask=plan.pol_mask,
                       lo=options["_lo"], hi=options["_hi"])
     if shared_phasor:
-        ph = da.blockwise(_block_phasor_chunk, "tbc", uvw, "tbx", params, "kz",
-                          dtype=np.complex128, concatenate=True, new_axes={"c": freq.size},
-                          frequency=freq, engine=engine)
-        stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph, "tbc",
+        # "e": the channels plus the engine column (one chunk)
+        ph = da.blockwise(_block_phasor_chunk, "tbe", uvw, "tbx", params, "kz", *ants,
+                          dtype=np.complex128, concatenate=True, new_axes={"e": freq.size + 1},
+                          frequency=freq, engine=engine, tol_rad=tol)
+        # a sliced view (not a contracted index): keeps dask's chunk-by-chunk order
+        stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph[..., :-1], "tbc",
                                dtype=vis.dtype)
         sums = da.blockwise(_block_sums_with_phasor, "tbs", vis, "tbcp", ds["WEIGHT"].data,
-                            "tbcp", ds["FLAG"].data, "tbcp", uvw, "tbx", ph, "tbc",
+                            "tbcp", ds["FLAG"].data, "tbcp", uvw, "tbx", ph, "tbe",
                             **sum_kwargs).sum(axis=(0, 1))
     else:
         stacked = da.blockwise(_block_stack_vis, "tbcp", vis, "tbcp", uvw, "tbx", params, "kz",
-                               dtype=vis.dtype, concatenate=True, frequency=freq, engine=engine)
+                               *ants, dtype=vis.dtype, concatenate=True, frequency=freq,
+                               engine=engine, tol_rad=tol)
         sums = da.blockwise(_block_sums, "tbs", vis, "tbcp", ds["WEIGHT"].data, "tbcp",
-                            ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", engine=engine,
-                            **sum_kwargs).sum(axis=(0, 1))
+                            ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", *ants,
+                            engine=engine, tol_rad=tol, **sum_kwargs).sum(axis=(0, 1))
     out = ds.drop_encoding().copy()
     out["VISIBILITY"] = (ds["VISIBILITY"].dims, stacked, ds["VISIBILITY"].attrs)
     weight = ds["WEIGHT"].data * np.float32(plan.sum_weight)
@@ -487,7 +558,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             pb_cutoff: float = 0.1, uvmin: Any = None, uvmax: Any = None, sigma: Any = None,
             noise_image: Any = None, polarizations: Any = "parallel", engine: str = "auto",
             out: str | os.PathLike | None = None, overwrite: bool = False,
-            progress: bool = False) -> StackResult:
+            progress: bool = False, antenna_tol_rad: float = ANTENNA_TOL_RAD) -> StackResult:
     """Stack visibilities at catalog positions (paper eq. 4) and estimate the stacked flux.
 
     Parameters
@@ -532,14 +603,23 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     polarizations
         ``parallel`` (Stokes I: XX/YY or RR/LL), ``all`` or a list of names, for the flux.
     engine
-        ``auto`` (= ``numba``), ``numba``, ``numpy`` (plain reference evaluation, slow) or
-        ``nufft`` (ducc0 type-3 NUFFT, accuracy 1e-12; compact fields only).
+        ``auto`` (default: per block of rows ``antenna`` where it applies, else ``numba``),
+        ``antenna`` (per-antenna phasors, sine/cosine per antenna instead of per baseline;
+        needs ``baseline_antenna1_id``/``baseline_antenna2_id`` and baseline UVW that are
+        differences of per-antenna UVW to ``antenna_tol_rad``, XstackError otherwise),
+        ``numba`` (per-row kernel), ``numpy`` (plain reference evaluation, slow) or ``nufft``
+        (ducc0 type-3 NUFFT, accuracy 1e-12; compact fields only). The engine that ran is
+        ``options["engine"]`` (``antenna``, ``numba`` or ``mixed``; ``engine_rows`` counts
+        the rows per engine) after the flux pass.
     out
         Write the stacked store here (kind ``stacked``), atomically.
     overwrite
         Replace an existing ``out``.
     progress
         Progress bars on stderr.
+    antenna_tol_rad
+        Largest accepted bound (radians, at any position and channel) of the phase error of
+        the per-antenna factorisation (:meth:`xstack._antenna.AntennaLayout.phase_error`).
 
     Returns
     -------
@@ -559,7 +639,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
     if engine not in ENGINES:
         raise XstackError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
-    engine_used = "numba" if engine == "auto" else engine
+    engine_used = engine
     if not 0 <= float(pb_cutoff) < 1:
         raise XstackError(f"pb_cutoff must be in [0, 1), got {pb_cutoff}")
     lo, hi = _uv_limits(uvmin, uvmax)
@@ -655,7 +735,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         "sigma": (f"local-noise:{noise.name}" if noise is not None else "given"
                   if sig is not None else "analytic" if weighting == "sigma2" else None),
         "stack_center_deg": [float(np.degrees(center[0])), float(np.degrees(center[1]))],
-        "_lo": lo, "_hi": hi,
+        "_lo": lo, "_hi": hi, "_antenna_tol_rad": float(antenna_tol_rad),
     }
     if noise is not None:
         options["local_noise"] = noise.provenance()
@@ -683,6 +763,11 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             flux_jy=float(sum(s_p * s[0] for s_p, s in zip(scale, sums)) / den),
             flux_err_jy=float(np.sqrt(sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))) / den),
             flux_imag_jy=float(sum(s_p * s[3] for s_p, s in zip(scale, sums)) / den))
+        if engine in ("auto", "antenna", "numba"):
+            rows = np.sum([s[_NSUMS:] for s in sums], axis=0)
+            ran = [e for e, r in zip(_ROW_ENGINES, rows) if r > 0]
+            options["engine"] = ran[0] if len(ran) == 1 else "mixed" if ran else engine
+            options["engine_rows"] = {e: int(r) for e, r in zip(_ROW_ENGINES, rows)}
         return {"uvstack": {"flux_jy": measured["flux_jy"], "flux_err_jy": measured["flux_err_jy"],
                             "n_positions": n_positions, "n_visibilities": nvis,
                             "options": options}}
@@ -715,5 +800,6 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
                        flux_err_jy=measured["flux_err_jy"], n_positions=n_positions,
                        n_visibilities=measured["n_visibilities"], positions=pos, options=options,
                        uncovered=uncovered, flux_imag_jy=measured["flux_imag_jy"],
-                       partition_sums={p.name: s.tolist() for p, s in zip(active, sums)},
+                       partition_sums={p.name: s[:_NSUMS].tolist()
+                                       for p, s in zip(active, sums)},
                        _keepalive=keepalive)

@@ -8,7 +8,8 @@ baselines), 3384 integrations of 10 s, 10 channels of 25 MHz at 1.4 GHz, 2 polar
 Sections (all in one run, same machine state):
 
 1. end-to-end ``xstack.uvstack.stack.uvstack`` (flux pass over the lazy dask graph);
-2. the phasor kernel alone per engine and precision (numba float64 = production, numba with
+2. the phasor kernel alone per engine and precision (numba float64 = production per row,
+   the antenna-factorised kernel (``engine="antenna"``, the ``auto`` choice), numba with
    float32 phases, plain numpy reference measured on a slice and extrapolated, ducc0 type-3
    NUFFT where its grid fits), with the phase/phasor error against an extended-precision
    (long double) truth on a subset of rows;
@@ -126,24 +127,34 @@ def section_end_to_end(n_time: int, n_pos: int, rng) -> dict:
     out(f"data: {n_time} integrations x {nbl} baselines x 10 channels x 2 pols = {nvis:.3e} "
         f"visibilities ({vis.nbytes / 2**20:.0f} MiB complex64), {n_pos} positions, "
         f"{nbl * n_time * n_pos:.3e} (row, position) pairs")
-    uvstack(xr.DataTree.from_dict({"spw0_field0": ds.isel(time=slice(0, 2))}), cat)  # JIT warm-up
-    dt, peak, res = traced_peak(uvstack, tree, cat, weighting="pb")
+    small = xr.DataTree.from_dict({"spw0_field0": ds.isel(time=slice(0, 2))})
+    for engine in ("numba", "antenna"):  # JIT warm-up
+        uvstack(small, cat, engine=engine)
     out("")
-    out("| stage | wall [s] | CPU [s] (all threads) | throughput [vis/s wall] | python peak alloc [MiB] |")
-    out("|---|---|---|---|---|")
-    out(f"| uvstack() end to end (flux pass, numba float64) | {dt:.2f} | {CPU['last']:.2f} | "
-        f"{nvis / dt:.3e} | {peak / 2**20:.0f} |")
-    with tempfile.TemporaryDirectory() as tmp:
-        # the CLI always writes the stacked store: written in the flux's own pass
-        dtw, peakw, resw = traced_peak(uvstack, tree, cat, weighting="pb", out=Path(tmp) / "s.zarr")
-        assert abs(resw.flux_jy - res.flux_jy) <= 1e-12 * abs(res.flux_jy)
-    out(f"| uvstack(out=...) end to end (stacked store written + flux, one pass) | {dtw:.2f} | "
-        f"{CPU['last']:.2f} | {nvis / dtw:.3e} | {peakw / 2**20:.0f} |")
+    out("| stage | engine asked (ran) | wall [s] | CPU [s] (all threads) | throughput [vis/s wall] "
+        "| python peak alloc [MiB] |")
+    out("|---|---|---|---|---|---|")
+    flux = {}
+    for engine in ("numba", "auto"):
+        dt, peak, res = traced_peak(uvstack, tree, cat, weighting="pb", engine=engine)
+        flux[engine] = res.flux_jy
+        out(f"| uvstack() end to end (flux pass, float64) | {engine} ({res.options['engine']}) | "
+            f"{dt:.2f} | {CPU['last']:.2f} | {nvis / dt:.3e} | {peak / 2**20:.0f} |")
+        with tempfile.TemporaryDirectory() as tmp:
+            # the CLI always writes the stacked store: written in the flux's own pass
+            dtw, peakw, resw = traced_peak(uvstack, tree, cat, weighting="pb", engine=engine,
+                                           out=Path(tmp) / "s.zarr")
+            assert abs(resw.flux_jy - res.flux_jy) <= 1e-12 * abs(res.flux_jy)
+        out(f"| uvstack(out=...) end to end (stacked store written + flux, one pass) | {engine} "
+            f"({resw.options['engine']}) | {dtw:.2f} | {CPU['last']:.2f} | {nvis / dtw:.3e} | "
+            f"{peakw / 2**20:.0f} |")
+    out(f"flux numba {flux['numba']:.15e}, auto {flux['auto']:.15e} Jy (relative difference "
+        f"{abs(flux['auto'] - flux['numba']) / abs(flux['numba']):.1e})")
     return {"uvw": uvw.reshape(-1, 3), "freq": freq, "ra": ra, "dec": dec, "nvis": nvis,
-            "e2e": dt, "flux": res.flux_jy, "ds": ds}
+            "e2e": dt, "flux": res.flux_jy, "ds": ds, "a1": a1, "a2": a2}
 
 
-def section_kernels(uvw, freq, ra, dec, rng, nvis) -> None:
+def section_kernels(uvw, freq, ra, dec, rng, nvis, a1, a2) -> None:
     l, m, n, n1 = radec_to_lmn(ra, dec, *CENTER)
     w = np.ones(l.size)
     ia = np.ones((l.size, freq.size))
@@ -159,6 +170,13 @@ def section_kernels(uvw, freq, ra, dec, rng, nvis) -> None:
     rows.append(("numba, float64 phases (default)", dt, peak, err64,
                  f"CPU {CPU['last']:.1f} s"))
     del ph
+    # antenna-factorised kernel (engine="antenna"; "auto" where the UVW factorise)
+    K.phasor_antenna(uvw[:10 * a1.size], freq, l, m, n1, coef, a1, a2)  # JIT warm-up
+    dta, peaka, (pha, bound) = traced_peak(K.phasor_antenna, uvw, freq, l, m, n1, coef, a1, a2)
+    erra = np.max(np.abs(pha[sub] - truth))
+    rows.append(("antenna-factorised, float64 phases (auto)", dta, peaka, erra,
+                 f"CPU {CPU['last']:.1f} s; factorisation bound {bound:.1e} rad"))
+    del pha
     # numba float32 phases
     args32 = [x.astype(np.float32) for x in (uvw, freq, l, m, n1)]
     K.stack_phasor(args32[0][:10], *args32[1:], w, ia)
@@ -293,7 +311,8 @@ def main() -> None:
     if args.only_e2e:
         out(f"load average at end: {os.getloadavg()[0]:.1f}")
         return
-    section_kernels(e2e["uvw"], e2e["freq"], e2e["ra"], e2e["dec"], rng, e2e["nvis"])
+    section_kernels(e2e["uvw"], e2e["freq"], e2e["ra"], e2e["dec"], rng, e2e["nvis"], e2e["a1"],
+                    e2e["a2"])
     del e2e
     if not args.skip_scaling:
         section_scaling(rng)

@@ -128,7 +128,9 @@ def _phasor_antenna_numba(ant_uvw, ant_used, a1, a2, rows, fc, l, m, n1, coef_t,
     nbl = a1.shape[0]
     nchan = fc.shape[0]
     nsrc = l.shape[0]
-    for t in numba.prange(ntime):
+    tblock = 8
+    for b in numba.prange((ntime + tblock - 1) // tblock):
+        # per block of integrations: fresh large temporaries per integration cost page faults
         d = np.empty((nant, nsrc))
         er = np.empty((nant, nsrc))
         ei = np.empty((nant, nsrc))
@@ -136,63 +138,64 @@ def _phasor_antenna_numba(ant_uvw, ant_used, a1, a2, rows, fc, l, m, n1, coef_t,
         si = np.empty((nant, nsrc))
         fr = np.empty((nant, nsrc))
         fi = np.empty((nant, nsrc))
-        for ant in range(nant):
-            if not ant_used[t, ant]:
-                continue
-            u = ant_uvw[t, ant, 0]
-            v = ant_uvw[t, ant, 1]
-            w = ant_uvw[t, ant, 2]
-            # 1-D views: indexing 2-D arrays inside the inner loops defeats vectorisation
-            da = d[ant]
-            for k in range(nsrc):
-                da[k] = u * l[k] + v * m[k] + w * n1[k]
-            if even and nchan > 1:
-                sra = sr[ant]
-                sia = si[ant]
-                for k in range(nsrc):
-                    sra[k], sia[k] = _cis_minus_turns(da[k] * step)
-        for c in range(nchan):
-            f = fc[c]
-            seed = (not even) or c % reseed == 0
-            cr = coef_t[c]
+        for t in range(b * tblock, min(ntime, (b + 1) * tblock)):
             for ant in range(nant):
                 if not ant_used[t, ant]:
                     continue
+                u = ant_uvw[t, ant, 0]
+                v = ant_uvw[t, ant, 1]
+                w = ant_uvw[t, ant, 2]
+                # 1-D views: indexing 2-D arrays inside the inner loops defeats vectorisation
                 da = d[ant]
-                era = er[ant]
-                eia = ei[ant]
-                if seed:
-                    for k in range(nsrc):
-                        era[k], eia[k] = _cis_minus_turns(da[k] * f)
-                else:
+                for k in range(nsrc):
+                    da[k] = u * l[k] + v * m[k] + w * n1[k]
+                if even and nchan > 1:
                     sra = sr[ant]
                     sia = si[ant]
                     for k in range(nsrc):
-                        a = era[k] * sra[k] - eia[k] * sia[k]
-                        eia[k] = era[k] * sia[k] + eia[k] * sra[k]
-                        era[k] = a
-                # F = coef E once per antenna: a baseline then needs no coefficient load
-                fra = fr[ant]
-                fia = fi[ant]
-                for k in range(nsrc):
-                    fra[k] = cr[k] * era[k]
-                    fia[k] = cr[k] * eia[k]
-            for bl in range(nbl):
-                row = t * nbl + bl
-                if not rows[row]:
-                    continue
-                f1r = fr[a1[bl]]
-                f1i = fi[a1[bl]]
-                e2r = er[a2[bl]]
-                e2i = ei[a2[bl]]
-                acc_r = 0.0
-                acc_i = 0.0
-                for k in range(nsrc):
-                    # coef E_a1 conj(E_a2): the baseline phasor of position k
-                    acc_r += f1r[k] * e2r[k] + f1i[k] * e2i[k]
-                    acc_i += f1i[k] * e2r[k] - f1r[k] * e2i[k]
-                out_re[row, c] = acc_r
-                out_im[row, c] = acc_i
+                        sra[k], sia[k] = _cis_minus_turns(da[k] * step)
+            for c in range(nchan):
+                f = fc[c]
+                seed = (not even) or c % reseed == 0
+                cr = coef_t[c]
+                for ant in range(nant):
+                    if not ant_used[t, ant]:
+                        continue
+                    da = d[ant]
+                    era = er[ant]
+                    eia = ei[ant]
+                    if seed:
+                        for k in range(nsrc):
+                            era[k], eia[k] = _cis_minus_turns(da[k] * f)
+                    else:
+                        sra = sr[ant]
+                        sia = si[ant]
+                        for k in range(nsrc):
+                            a = era[k] * sra[k] - eia[k] * sia[k]
+                            eia[k] = era[k] * sia[k] + eia[k] * sra[k]
+                            era[k] = a
+                    # F = coef E once per antenna: a baseline then needs no coefficient load
+                    fra = fr[ant]
+                    fia = fi[ant]
+                    for k in range(nsrc):
+                        fra[k] = cr[k] * era[k]
+                        fia[k] = cr[k] * eia[k]
+                for bl in range(nbl):
+                    row = t * nbl + bl
+                    if not rows[row]:
+                        continue
+                    f1r = fr[a1[bl]]
+                    f1i = fi[a1[bl]]
+                    e2r = er[a2[bl]]
+                    e2i = ei[a2[bl]]
+                    acc_r = 0.0
+                    acc_i = 0.0
+                    for k in range(nsrc):
+                        # coef E_a1 conj(E_a2): the baseline phasor of position k
+                        acc_r += f1r[k] * e2r[k] + f1i[k] * e2i[k]
+                        acc_i += f1i[k] * e2r[k] - f1r[k] * e2i[k]
+                    out_re[row, c] = acc_r
+                    out_im[row, c] = acc_i
 
 
 def _check_inputs(uvw, frequency, l, m, n_minus_1, weight, inv_attenuation):

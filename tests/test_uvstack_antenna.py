@@ -114,13 +114,14 @@ def test_uvstack_antenna_equals_reference(partition, chunks, write, tmp_path):
     out = tmp_path / "o.zarr" if write else None
     res = uvstack(xr.DataTree.from_dict({"p": data}), cat, engine="antenna", out=out)
     assert res.options["engine"] == "antenna"
-    assert res.options["engine_rows"] == {"numba": 0, "antenna": 10 * 28}
+    assert res.options["engine_rows"] == {"antenna": 10 * 28}
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
     assert res.flux_err_jy == pytest.approx(ref["flux_err_jy"], rel=1e-10)
     ok = np.isfinite(ref["stacked"]["p"])
     np.testing.assert_allclose(res.stacked["p"]["VISIBILITY"].values[ok],
                                ref["stacked"]["p"][ok], rtol=0, atol=1e-9)
-    numba = uvstack(xr.DataTree.from_dict({"p": data}), cat, engine="numba")
+    numba = uvstack(xr.DataTree.from_dict({"p": data}), cat, engine="numba", out=out and
+                    tmp_path / "n.zarr")
     assert numba.options["engine"] == "numba"
     assert res.flux_jy == pytest.approx(numba.flux_jy, rel=1e-12)
 
@@ -144,6 +145,14 @@ def test_auto_falls_back_per_chunk_and_records_mixed(partition):
         # a looser tolerance accepts the factorisation
         loose = uvstack(xr.DataTree.from_dict({"p": bad}), cat, antenna_tol_rad=10.0)
         assert loose.options["engine"] == "antenna"
+
+
+def test_numpy_engine_records_itself(partition, tmp_path):
+    ds, cat, ref = partition
+    res = uvstack(xr.DataTree.from_dict({"p": ds.chunk({"time": 5})}), cat, engine="numpy",
+                  out=tmp_path / "o.zarr")
+    assert res.options["engine"] == "numpy" and res.options["engine_rows"] == {"numpy": 280}
+    assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
 
 
 def test_without_antenna_ids(partition):

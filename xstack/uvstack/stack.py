@@ -40,7 +40,7 @@ ENGINES = ("auto", "antenna", "numba", "numpy", "nufft")
 #: Engines that evaluate a block of rows, in the order of their row counters in the sums
 #: (after the 5 flux sums of :func:`kernels.stack_sums`) and their codes in the trailing
 #: column of a chunk's shared phasor.
-_ROW_ENGINES = ("numba", "antenna")
+_ROW_ENGINES = ("numba", "antenna", "numpy", "nufft")
 _NSUMS = 5
 PARALLEL_HANDS = ("XX", "YY", "RR", "LL")
 
@@ -763,11 +763,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             flux_jy=float(sum(s_p * s[0] for s_p, s in zip(scale, sums)) / den),
             flux_err_jy=float(np.sqrt(sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))) / den),
             flux_imag_jy=float(sum(s_p * s[3] for s_p, s in zip(scale, sums)) / den))
-        if engine in ("auto", "antenna", "numba"):
-            rows = np.sum([s[_NSUMS:] for s in sums], axis=0)
-            ran = [e for e, r in zip(_ROW_ENGINES, rows) if r > 0]
-            options["engine"] = ran[0] if len(ran) == 1 else "mixed" if ran else engine
-            options["engine_rows"] = {e: int(r) for e, r in zip(_ROW_ENGINES, rows)}
+        rows = np.sum([s[_NSUMS:] for s in sums], axis=0)
+        ran = {e: int(r) for e, r in zip(_ROW_ENGINES, rows) if r > 0}
+        options["engine"] = next(iter(ran)) if len(ran) == 1 else "mixed" if ran else engine
+        options["engine_rows"] = ran
         return {"uvstack": {"flux_jy": measured["flux_jy"], "flux_err_jy": measured["flux_err_jy"],
                             "n_positions": n_positions, "n_visibilities": nvis,
                             "options": options}}

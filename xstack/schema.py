@@ -396,6 +396,29 @@ def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None)
     return tree
 
 
+def new_store_attrs(partitions: Mapping[str, xr.Dataset], kind: str,
+                    attrs: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Root attributes of a new, not yet complete store; validates what is to be written.
+
+    Every writer of stores (:func:`write_store`, the converter) starts from these, and sets
+    ``xstack_complete`` only once all data are in place.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}")
+    if not partitions:
+        raise XstackError("nothing to write: no partitions")
+    for name, ds in partitions.items():
+        validate_partition(ds, name)
+    return {
+        "xstack_schema": SCHEMA_NAME,
+        "xstack_schema_version": SCHEMA_VERSION,
+        "xstack_kind": kind,
+        "xstack_complete": False,
+        "partitions": sorted(partitions),
+        **(dict(attrs) if attrs else {}),
+    }
+
+
 def write_store(
     partitions: Mapping[str, xr.Dataset],
     path: str | os.PathLike,
@@ -441,24 +464,12 @@ def write_store(
 
     from xstack._progress import dask_progress
 
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}")
-    if not partitions:
-        raise XstackError("nothing to write: no partitions")
-    for name, ds in partitions.items():
-        validate_partition(ds, name)
+    root_attrs = new_store_attrs(partitions, kind, attrs)
     import zarr
 
     with atomic_output(path, overwrite=overwrite) as tmp:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-        root.attrs.update({
-            "xstack_schema": SCHEMA_NAME,
-            "xstack_schema_version": SCHEMA_VERSION,
-            "xstack_kind": kind,
-            "xstack_complete": False,
-            "partitions": sorted(partitions),
-            **(dict(attrs) if attrs else {}),
-        })
+        root.attrs.update(root_attrs)
         # stale encodings (chunks of a source store) must not override dask chunks
         writes = [ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
                                              consolidated=False, compute=False)

@@ -20,8 +20,7 @@ import numpy as np
 import xarray as xr
 
 from xstack._atomic import atomic_output
-from xstack.errors import XstackError
-from xstack.schema import KINDS, SCHEMA_NAME, SCHEMA_VERSION, validate_partition
+from xstack.schema import new_store_attrs
 
 _BLOSC_SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
 
@@ -48,12 +47,7 @@ def region_store(
     """
     import zarr
 
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}")
-    if not partitions:
-        raise XstackError("nothing to write: no partitions")
-    for name, ds in partitions.items():
-        validate_partition(ds, name)
+    root_attrs = new_store_attrs(partitions, kind, attrs)
     with atomic_output(path, overwrite=overwrite) as tmp:
         # The skeleton (metadata and coordinates: a few dozen small objects) is built in memory
         # and then written out in one go: through a local store every object costs a round
@@ -61,14 +55,7 @@ def region_store(
         skeleton: dict[str, Any] = {}
         memory = zarr.storage.MemoryStore(store_dict=skeleton)
         root = zarr.open_group(memory, mode="w", zarr_format=3)
-        root.attrs.update({
-            "xstack_schema": SCHEMA_NAME,
-            "xstack_schema_version": SCHEMA_VERSION,
-            "xstack_kind": kind,
-            "xstack_complete": False,
-            "partitions": sorted(partitions),
-            **(dict(attrs) if attrs else {}),
-        })
+        root.attrs.update(root_attrs)
         for name, ds in partitions.items():
             enc = {k: dict(v) for k, v in (encoding or {}).items() if k in ds.variables}
             ds.drop_encoding().to_zarr(memory, group=name, mode="w", zarr_format=3,

@@ -44,8 +44,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--uvmax", default=None, metavar="DIST", help="largest uv distance in the flux")
     p.add_argument("--polarizations", default="parallel",
                    help="parallel (Stokes I, default), all, or a comma list such as RR,LL")
-    p.add_argument("--engine", default="auto", choices=("auto", "numba", "numpy", "nufft"),
-                   help="phasor engine (default auto = numba, float64 phases)")
+    p.add_argument("--engine", default="auto", choices=("auto", "antenna", "numba", "numpy", "nufft"),
+                   help="phasor engine, float64 phases (default auto: per-antenna phasors where "
+                   "the UVW factorise to 1e-9 rad, else per-row numba)")
     p.add_argument("--profile-bins", type=int, default=20, metavar="N",
                    help="number of uv-distance bins of the profile (default 20)")
     p.add_argument("--profile-png", default=None, metavar="P",

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack._antenna import MIN_ROWS_PER_ANTENNA
 from xstack._json import finite_or_none
 from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam, standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn, read_catalog
@@ -32,9 +33,6 @@ from xstack.noise.positions import ARCSEC, random_positions
 
 METHODS = ("analytic", "mc", "random", "bootstrap")
 ENGINES = ("auto", "antenna", "row")
-#: engine="auto" takes the antenna path only with at least this many used rows per used
-#: antenna and time: the antenna phasors cost about what the sine/cosine of a row saves
-MIN_ROWS_PER_ANTENNA = 2.0
 WEIGHTINGS = ("none", "pb", "column")
 
 

@@ -41,3 +41,54 @@ def cis_minus_turns(t):
     cq = 1.0 + qq * (qq - 7.0) / 6.0  # cos(q pi/2), exact for q in -2..2
     sq = q * (4.0 - qq) / 3.0  # sin(q pi/2)
     return cs * cq - sn * sq, -(sn * cq + cs * sq)
+
+
+# --- per-antenna phasors (the antenna-factorised kernels of xstack.uvstack and xstack.noise) --
+# Baseline phasors are E_a1 conj(E_a2) with E_a = exp(-2 pi i nu/c (u_a l + v_a m + w_a (n-1)));
+# per integration the kernels keep, per antenna and position, the phase per unit nu/c
+# (``turns``), the current channel's E and the channel-step phasor. The helpers work on 1-D
+# views of those (nant, npos) arrays: indexing 2-D arrays in the inner loops defeats
+# vectorisation.
+
+@numba.njit(inline="always")
+def antenna_phases(ant_uvw_t, ant_used_t, l, m, n1, even, step, turns, step_re, step_im):
+    """Set up one integration: ``turns`` of every used antenna and, for evenly spaced
+    channels, its channel-step phasor exp(-2 pi i turns * step)."""
+    for ant in range(ant_uvw_t.shape[0]):
+        if not ant_used_t[ant]:
+            continue
+        u = ant_uvw_t[ant, 0]
+        v = ant_uvw_t[ant, 1]
+        w = ant_uvw_t[ant, 2]
+        ta = turns[ant]
+        if even:
+            sra = step_re[ant]
+            sia = step_im[ant]
+            for k in range(ta.shape[0]):
+                ta[k] = u * l[k] + v * m[k] + w * n1[k]
+                sra[k], sia[k] = cis_minus_turns(ta[k] * step)
+        else:
+            for k in range(ta.shape[0]):
+                ta[k] = u * l[k] + v * m[k] + w * n1[k]
+
+
+@numba.njit(inline="always")
+def antenna_channel(ant_used_t, seed, f, turns, e_re, e_im, step_re, step_im):
+    """E of every used antenna at the next channel: evaluated exactly at frequency ``f``
+    (per unit c) when ``seed``, else advanced from the previous channel by the step phasor."""
+    for ant in range(turns.shape[0]):
+        if not ant_used_t[ant]:
+            continue
+        ta = turns[ant]
+        era = e_re[ant]
+        eia = e_im[ant]
+        if seed:
+            for k in range(ta.shape[0]):
+                era[k], eia[k] = cis_minus_turns(ta[k] * f)
+        else:
+            sra = step_re[ant]
+            sia = step_im[ant]
+            for k in range(ta.shape[0]):
+                a = era[k] * sra[k] - eia[k] * sia[k]
+                eia[k] = era[k] * sia[k] + eia[k] * sra[k]
+                era[k] = a

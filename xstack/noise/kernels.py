@@ -38,6 +38,7 @@ from xstack._antenna import (  # noqa: F401  (re-exported: the noise API since i
     FactorisationError,
     antenna_layout,
 )
+from xstack._phase import antenna_channel, antenna_phases
 from xstack._phase import cis_minus_turns as _cis_minus
 from xstack.coords import SPEED_OF_LIGHT
 
@@ -195,30 +196,10 @@ def _group_antenna_numba(ant_uvw, ant_used, a1, a2, fc, step, even, reseed, vw_r
                     break
             if not any_ok:
                 continue
-            for ant in range(nant):
-                if not ant_used[t, ant]:
-                    continue
-                u = ant_uvw[t, ant, 0]
-                v = ant_uvw[t, ant, 1]
-                w = ant_uvw[t, ant, 2]
-                # 1-D views: indexing 2-D arrays inside the inner loops defeats vectorisation
-                dda = dd[ant]
-                sra = sr[ant]
-                sia = si[ant]
-                for j in range(nk):
-                    dda[j] = u * lg[j] + v * mg[j] + w * ng[j]
-                    sra[j], sia[j] = _cis_minus(dda[j] * step)
+            antenna_phases(ant_uvw[t], ant_used[t], lg, mg, ng, even, step, dd, sr, si)
             for c in range(nchan):
-                if (not even) or c % reseed == 0:
-                    f = fc[c]
-                    for ant in range(nant):
-                        if not ant_used[t, ant]:
-                            continue
-                        dda = dd[ant]
-                        era = er[ant]
-                        eia = ei[ant]
-                        for j in range(nk):
-                            era[j], eia[j] = _cis_minus(dda[j] * f)
+                antenna_channel(ant_used[t], (not even) or c % reseed == 0, fc[c], dd, er, ei,
+                                sr, si)
                 arow = a[c, k0:k0 + nk]
                 brow = b[c, k0:k0 + nk]
                 for bl in range(nbl):
@@ -260,19 +241,6 @@ def _group_antenna_numba(ant_uvw, ant_used, a1, a2, fc, step, even, reseed, vw_r
                         if bi >= 0:
                             prof[g, bi] += dterm
                             profm[g, bi] += mterm
-                if even and c + 1 < nchan and (c + 1) % reseed != 0:
-                    for ant in range(nant):
-                        if not ant_used[t, ant]:
-                            continue
-                        era = er[ant]
-                        eia = ei[ant]
-                        sra = sr[ant]
-                        sia = si[ant]
-                        for j in range(nk):
-                            re = era[j]
-                            im = eia[j]
-                            era[j] = re * sra[j] - im * sia[j]
-                            eia[j] = re * sia[j] + im * sra[j]
         data[g] += dacc
         model[g] += macc
 

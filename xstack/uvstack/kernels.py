@@ -51,6 +51,7 @@ import numba
 import numpy as np
 
 from xstack._antenna import ANTENNA_TOL_RAD, FactorisationError, antenna_layout
+from xstack._phase import antenna_channel, antenna_phases
 from xstack._phase import cis_minus_turns as _cis_minus_turns
 from xstack.coords import SPEED_OF_LIGHT
 
@@ -139,41 +140,15 @@ def _phasor_antenna_numba(ant_uvw, ant_used, a1, a2, rows, fc, l, m, n1, coef_t,
         fr = np.empty((nant, nsrc))
         fi = np.empty((nant, nsrc))
         for t in range(b * tblock, min(ntime, (b + 1) * tblock)):
-            for ant in range(nant):
-                if not ant_used[t, ant]:
-                    continue
-                u = ant_uvw[t, ant, 0]
-                v = ant_uvw[t, ant, 1]
-                w = ant_uvw[t, ant, 2]
-                # 1-D views: indexing 2-D arrays inside the inner loops defeats vectorisation
-                da = d[ant]
-                for k in range(nsrc):
-                    da[k] = u * l[k] + v * m[k] + w * n1[k]
-                if even and nchan > 1:
-                    sra = sr[ant]
-                    sia = si[ant]
-                    for k in range(nsrc):
-                        sra[k], sia[k] = _cis_minus_turns(da[k] * step)
+            antenna_phases(ant_uvw[t], ant_used[t], l, m, n1, even and nchan > 1, step, d, sr, si)
             for c in range(nchan):
-                f = fc[c]
-                seed = (not even) or c % reseed == 0
                 cr = coef_t[c]
+                antenna_channel(ant_used[t], (not even) or c % reseed == 0, fc[c], d, er, ei, sr, si)
                 for ant in range(nant):
                     if not ant_used[t, ant]:
                         continue
-                    da = d[ant]
                     era = er[ant]
                     eia = ei[ant]
-                    if seed:
-                        for k in range(nsrc):
-                            era[k], eia[k] = _cis_minus_turns(da[k] * f)
-                    else:
-                        sra = sr[ant]
-                        sia = si[ant]
-                        for k in range(nsrc):
-                            a = era[k] * sra[k] - eia[k] * sia[k]
-                            eia[k] = era[k] * sia[k] + eia[k] * sra[k]
-                            era[k] = a
                     # F = coef E once per antenna: a baseline then needs no coefficient load
                     fra = fr[ant]
                     fia = fi[ant]

@@ -47,6 +47,20 @@ DEFAULT_RESEED = 16
 _FM = {"reassoc", "contract", "nsz", "arcp"}
 
 
+@numba.njit(inline="always")
+def _row_terms(g, row, c, sPr, sPi, sMr, sMi, vw_re, vw_im, ws, bins, nbins, prof, profm):
+    """Data term Re(VW P) and model term WS Re(M P) of one (row, channel) for group ``g``,
+    added to the group's uv-profile bin when profiles are asked for."""
+    dterm = vw_re[row, c] * sPr - vw_im[row, c] * sPi
+    mterm = ws[row, c] * (sMr * sPr - sMi * sPi)
+    if nbins > 0:
+        bi = bins[row, c]
+        if bi >= 0:
+            prof[g, bi] += dterm
+            profm[g, bi] += mterm
+    return dterm, mterm
+
+
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
 def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1, a, b,
                  starts, with_model, bins, nbins, data, model, prof, profm):
@@ -107,15 +121,10 @@ def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1
                         sPi += ac * im
                         pr[j] = re * dr[j] - im * di[j]
                         pi[j] = re * di[j] + im * dr[j]
-                dterm = vw_re[row, c] * sPr - vw_im[row, c] * sPi
-                mterm = ws[row, c] * (sMr * sPr - sMi * sPi)
+                dterm, mterm = _row_terms(g, row, c, sPr, sPi, sMr, sMi, vw_re, vw_im, ws,
+                                          bins, nbins, prof, profm)
                 dacc += dterm
                 macc += mterm
-                if nbins > 0:
-                    bi = bins[row, c]
-                    if bi >= 0:
-                        prof[g, bi] += dterm
-                        profm[g, bi] += mterm
         data[g] += dacc
         model[g] += macc
 
@@ -232,15 +241,10 @@ def _group_antenna_numba(ant_uvw, ant_used, a1, a2, fc, step, even, reseed, vw_r
                             ac = arow[j]
                             sPr += ac * re
                             sPi += ac * im
-                    dterm = vw_re[row, c] * sPr - vw_im[row, c] * sPi
-                    mterm = ws[row, c] * (sMr * sPr - sMi * sPi)
+                    dterm, mterm = _row_terms(g, row, c, sPr, sPi, sMr, sMi, vw_re, vw_im, ws,
+                                              bins, nbins, prof, profm)
                     dacc += dterm
                     macc += mterm
-                    if nbins > 0:
-                        bi = bins[row, c]
-                        if bi >= 0:
-                            prof[g, bi] += dterm
-                            profm[g, bi] += mterm
         data[g] += dacc
         model[g] += macc
 

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from _fit_helpers import StampSimulator, gaussian_stack
+from _fit_helpers import StampSimulator, gaussian_stack, write_stamp_fits
 
 from xstack.cli import main
 from xstack.fit.uvfit import fit_uv
@@ -42,12 +42,8 @@ def test_fit_fits_stamp(tmp_path, capsys):
 
     sim = StampSimulator()
     img = sim.stamp(1.0, 1.5, 3)
-    hdr = fits.Header({"CTYPE1": "RA---SIN", "CTYPE2": "DEC--SIN", "CDELT1": -0.5 / 3600,
-                       "CDELT2": 0.5 / 3600, "CRPIX1": sim.size // 2 + 1,
-                       "CRPIX2": sim.size // 2 + 1, "CRVAL1": 57.0, "CRVAL2": -30.0,
-                       "CUNIT1": "deg", "CUNIT2": "deg"})
     path = tmp_path / "stack.fits"
-    fits.HDUList([fits.PrimaryHDU(img, header=hdr), fits.ImageHDU(sim.psf, name="PSF")]).writeto(path)
+    write_stamp_fits(sim, img, path)
     status, out, _ = _run(capsys, ["fit", str(path), "--model", "gaussian", "--json"])
     assert status == 0
     d = json.loads(out)
@@ -55,7 +51,7 @@ def test_fit_fits_stamp(tmp_path, capsys):
     assert abs(d["flux_jy"] - 1.0) < 4 * d["flux_err_jy"]
     psf_path = tmp_path / "psf.fits"
     fits.PrimaryHDU(sim.psf).writeto(psf_path)
-    fits.PrimaryHDU(img, header=hdr).writeto(tmp_path / "bare.fits")
+    fits.PrimaryHDU(img, header=fits.getheader(path)).writeto(tmp_path / "bare.fits")
     status, out, _ = _run(capsys, ["fit", str(tmp_path / "bare.fits"), "--psf", str(psf_path),
                                    "--model", "gaussian", "--json"])
     assert status == 0 and json.loads(out)["flux_jy"] == pytest.approx(d["flux_jy"], rel=1e-9)

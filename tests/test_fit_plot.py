@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from _fit_helpers import ARCSEC, GK, StampSimulator, gaussian_stack
+from _fit_helpers import ARCSEC, GK, StampSimulator, gaussian_stack, write_stamp_fits
 
 from xstack.cli import main
 from xstack.errors import XstackError
@@ -43,17 +43,11 @@ def gauss_ds():
 
 @pytest.fixture(scope="module")
 def stamp_fits(tmp_path_factory):
-    from astropy.io import fits
 
     sim = StampSimulator()
     img = sim.stamp(1.0, 1.5, 3)
-    hdr = fits.Header({"CTYPE1": "RA---SIN", "CTYPE2": "DEC--SIN", "CDELT1": -0.5 / 3600,
-                       "CDELT2": 0.5 / 3600, "CRPIX1": sim.size // 2 + 1,
-                       "CRPIX2": sim.size // 2 + 1, "CRVAL1": 57.0, "CRVAL2": -30.0,
-                       "CUNIT1": "deg", "CUNIT2": "deg"})
     path = tmp_path_factory.mktemp("stamp") / "stack.fits"
-    fits.HDUList([fits.PrimaryHDU(img, header=hdr),
-                  fits.ImageHDU(sim.psf, name="PSF")]).writeto(path)
+    write_stamp_fits(sim, img, path)
     return path, sim, img
 
 

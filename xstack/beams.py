@@ -136,6 +136,13 @@ class PrimaryBeam:
         s = x0 * SPEED_OF_LIGHT / (np.pi * self.dish_diameter * freq)
         return np.where(s < 1.0, np.arcsin(np.minimum(s, 1.0)), np.pi / 2)
 
+    def main_lobe(self, theta: Any, frequency: Any) -> np.ndarray:
+        """Attenuation for primary-beam correction: A inside the main lobe, 0 beyond the
+        first null (where a model sidelobe would otherwise be divided by). Broadcasts like
+        :meth:`__call__`."""
+        theta = np.asarray(theta, dtype=np.float64)
+        return np.where(theta < self.first_null(frequency), self(theta, frequency), 0.0)
+
     def radius_at(self, level: float, frequency: float) -> float:
         """Angular radius (rad) where the attenuation first falls to ``level``."""
         from scipy.optimize import brentq

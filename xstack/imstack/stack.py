@@ -178,9 +178,7 @@ def _primary_beam_values(info: ImageInfo, pb: Any, ra: np.ndarray, dec: np.ndarr
                               "give a PB FITS image instead")
         theta = angular_separation(np.radians(ra), np.radians(dec),
                                    np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1]))
-        a = np.asarray(pb(theta, info.frequency_hz), dtype=np.float64)
-        # beyond the first null a sidelobe is no primary-beam correction (docs/conventions.md)
-        return np.where(theta < pb.first_null(info.frequency_hz), a, 0.0)
+        return pb.main_lobe(theta, info.frequency_hz)
     # a primary-beam image: nearest pixel at each position, 0 off the image
     pbimg = read_image(pb, name=f"primary beam {pb}")
     px, py = pbimg.wcs.world_to_pixel_values(ra, dec)

@@ -150,9 +150,7 @@ class _Pointing:
     def attenuation(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """(nchan, K) power attenuation of positions in this pointing."""
         theta = angular_separation(ra, dec, self.centre[0], self.centre[1])
-        a = np.asarray(self.beam(theta[None, :], self.freq[:, None]), dtype=np.float64)
-        # beyond the first null nothing is primary-beam corrected (as xstack.uvstack decides)
-        return np.where(theta[None, :] < self.beam.first_null(self.freq)[:, None], a, 0.0)
+        return self.beam.main_lobe(theta[None, :], self.freq[:, None])
 
     def inside(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """In this pointing: A >= cutoff in every channel (as xstack.uvstack decides)."""

@@ -235,14 +235,7 @@ def _beam_for(primary_beam: Any, ds: xr.Dataset, cutoff: float):
     else:
         raise XstackError(f"unknown primary beam {primary_beam!r} (use auto, airy, gaussian, none "
                           "or a FITS file)")
-
-    def attenuation(theta, l, m, f):
-        f = np.asarray(f, dtype=np.float64)[None, :]
-        # beyond the first null a model sidelobe may exceed the cutoff, but dividing by it
-        # is no primary-beam correction: such a direction is outside the pointing
-        return np.where(theta[:, None] < beam.first_null(f), beam(theta[:, None], f), 0.0)
-
-    return attenuation
+    return lambda theta, l, m, f: beam.main_lobe(theta[:, None], np.asarray(f)[None, :])
 
 
 def _pol_mask(ds: xr.Dataset, polarizations: Any, where: str) -> np.ndarray:

@@ -329,16 +329,6 @@ def _antennas(a1, a2, bsl):
     return None if a1 is None else (a1[bsl], a2[bsl])
 
 
-def _block_stack_vis(vis, uvw, params, a1, a2, frequency, engine, tol_rad):
-    out = np.empty(vis.shape, dtype=vis.dtype)
-    for tsl, bsl in _steps(*vis.shape[:2]):
-        ph, _ = _block_phasor(uvw[tsl, bsl], params, frequency, engine, _antennas(a1, a2, bsl),
-                              tol_rad=tol_rad)
-        # NaN under flags stays NaN (flagged); the output keeps the input precision
-        out[tsl, bsl] = vis[tsl, bsl] * ph[..., None]
-    return out
-
-
 def _block_phasor_chunk(uvw, params, a1, a2, frequency, engine, tol_rad):
     """The whole chunk's phasor, shared by stack and sums: (nt, nb, nchan + 1) complex128.
 
@@ -473,9 +463,10 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
                      shared_phasor: bool = False) -> tuple[xr.Dataset, Any]:
     """The lazy stacked partition and the lazy flux sums of ``plan``.
 
-    With ``shared_phasor`` (used when the stack is written) both come from one phasor per
-    chunk, so a write plus the flux costs one phasor evaluation instead of two; otherwise the
-    sums evaluate the phasor in small row steps themselves (less memory for a flux alone).
+    The stacked visibilities come from one phasor per chunk; with ``shared_phasor`` (used
+    when the stack is written) the sums use that phasor too, so a write plus the flux costs
+    one phasor evaluation instead of two; otherwise the sums evaluate the phasor in small row
+    steps themselves, only for rows that carry weight (less memory for a flux alone).
     """
     ds = _as_dask(plan.ds)
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
@@ -493,21 +484,19 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
     sum_kwargs = dict(dtype=np.float64, concatenate=True, new_axes={"s": nsums},
                       adjust_chunks={"t": 1, "b": 1}, frequency=freq, pol_mask=plan.pol_mask,
                       lo=options["_lo"], hi=options["_hi"])
+    # "e": the channels plus the engine column (one chunk). Computed only when the stacked
+    # visibilities are (a written store, or the caller's own compute)
+    ph = da.blockwise(_block_phasor_chunk, "tbe", uvw, "tbx", params, "kz", *ants,
+                      dtype=np.complex128, concatenate=True, new_axes={"e": freq.size + 1},
+                      frequency=freq, engine=engine, tol_rad=tol)
+    # a sliced view (not a contracted index): keeps dask's chunk-by-chunk order
+    stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph[..., :-1], "tbc",
+                           dtype=vis.dtype)
     if shared_phasor:
-        # "e": the channels plus the engine column (one chunk)
-        ph = da.blockwise(_block_phasor_chunk, "tbe", uvw, "tbx", params, "kz", *ants,
-                          dtype=np.complex128, concatenate=True, new_axes={"e": freq.size + 1},
-                          frequency=freq, engine=engine, tol_rad=tol)
-        # a sliced view (not a contracted index): keeps dask's chunk-by-chunk order
-        stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph[..., :-1], "tbc",
-                               dtype=vis.dtype)
         sums = da.blockwise(_block_sums_with_phasor, "tbs", vis, "tbcp", ds["WEIGHT"].data,
                             "tbcp", ds["FLAG"].data, "tbcp", uvw, "tbx", ph, "tbe",
                             **sum_kwargs).sum(axis=(0, 1))
     else:
-        stacked = da.blockwise(_block_stack_vis, "tbcp", vis, "tbcp", uvw, "tbx", params, "kz",
-                               *ants, dtype=vis.dtype, concatenate=True, frequency=freq,
-                               engine=engine, tol_rad=tol)
         sums = da.blockwise(_block_sums, "tbs", vis, "tbcp", ds["WEIGHT"].data, "tbcp",
                             ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", *ants,
                             engine=engine, tol_rad=tol, **sum_kwargs).sum(axis=(0, 1))

@@ -44,6 +44,8 @@ ARCSEC = math.pi / (180.0 * 3600.0)
 BOLTZMANN = 1.380649e-23
 #: Target bytes of one VISIBILITY chunk (complex128 work arrays are twice that).
 CHUNK_BYTES = 32 * 1024**2
+#: Rounds of redrawing the sources of a random population that fall outside every pointing.
+_MAX_REDRAWS = 200
 
 
 @dataclass
@@ -148,7 +150,14 @@ def _offsets_to_radec(x_arcsec: np.ndarray, y_arcsec: np.ndarray,
 
 
 def _draw_population(i: int, scene: Scene, seed: int, pointings: np.ndarray | None,
-                     centre: tuple[float, float]) -> dict[str, np.ndarray]:
+                     centre: tuple[float, float], covered: Any = None) -> dict[str, np.ndarray]:
+    """Positions, fluxes and sizes of population ``i``.
+
+    ``covered(ra, dec) -> bool array``: where a source can be observed (inside some pointing's
+    primary beam). Random positions (``box``, ``disc``) are drawn uniformly inside the region
+    AND the coverage: a source that falls outside every pointing is drawn again from the same
+    generator, so a seed whose first draw is covered gives the same sources as before.
+    """
     q = scene.populations[i]
     rng = _seed_rng(seed, 1, i)
     n = q.count
@@ -157,21 +166,40 @@ def _draw_population(i: int, scene: Scene, seed: int, pointings: np.ndarray | No
         if pos.centre else centre
     if pos.kind == "list":
         ra, dec = np.radians(np.asarray(pos.ra, float)), np.radians(np.asarray(pos.dec, float))
-    elif pos.kind == "box":
-        w, h = pos.size_arcsec
-        ra, dec = _offsets_to_radec(rng.uniform(-w / 2, w / 2, n), rng.uniform(-h / 2, h / 2, n), c)
-    else:
+    elif pos.kind in ("box", "disc"):
+        if pos.kind == "box":
+            w, h = pos.size_arcsec
+
+            def draw(k: int) -> tuple[np.ndarray, np.ndarray]:
+                return _offsets_to_radec(rng.uniform(-w / 2, w / 2, k), rng.uniform(-h / 2, h / 2, k), c)
+        else:
+            def draw(k: int) -> tuple[np.ndarray, np.ndarray]:
+                r = pos.radius_arcsec * np.sqrt(rng.uniform(size=k))
+                phi = rng.uniform(0, 2 * np.pi, k)
+                return _offsets_to_radec(r * np.sin(phi), r * np.cos(phi), c)
+        ra, dec = (np.atleast_1d(np.asarray(a, float)) for a in draw(n))
+        if covered is not None and n:
+            ok = covered(ra, dec)
+            for _ in range(_MAX_REDRAWS):
+                if ok.all():
+                    break
+                bad = np.flatnonzero(~ok)
+                ra[bad], dec[bad] = draw(bad.size)
+                ok[bad] = covered(ra[bad], dec[bad])
+            else:
+                raise XstackError(
+                    f"populations[{i}].positions: the {pos.kind} hardly overlaps the pointings "
+                    f"({int((~ok).sum())} of {n} sources still outside every pointing after "
+                    f"{_MAX_REDRAWS} redraws): move or shrink it, or add pointings")
+    else:  # around_pointings: a disc around a randomly chosen pointing (always covered)
+        assert pointings is not None
         r = pos.radius_arcsec * np.sqrt(rng.uniform(size=n))
         phi = rng.uniform(0, 2 * np.pi, n)
         x, y = r * np.sin(phi), r * np.cos(phi)
-        if pos.kind == "disc":
-            ra, dec = _offsets_to_radec(x, y, c)
-        else:
-            assert pointings is not None
-            which = rng.integers(0, len(pointings), n)
-            ra, dec = np.empty(n), np.empty(n)
-            for k in range(n):
-                ra[k], dec[k] = _offsets_to_radec(x[k], y[k], tuple(pointings[which[k]]))
+        which = rng.integers(0, len(pointings), n)
+        ra, dec = np.empty(n), np.empty(n)
+        for k in range(n):
+            ra[k], dec[k] = _offsets_to_radec(x[k], y[k], tuple(pointings[which[k]]))
     flux = q.flux.sample(n, rng)
     if q.shape.kind == "gaussian":
         f = q.shape.fwhm_arcsec
@@ -229,9 +257,14 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
         pointings = np.column_stack([drawn[k]["ra"], drawn[k]["dec"]])
         if len(pointings) == 0:
             raise XstackError(f"pointings.population: population {pm.population!r} is empty")
+    def covered(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
+        sep = angular_separation(ra[:, None], dec[:, None], pointings[None, :, 0],
+                                 pointings[None, :, 1])
+        return check_beam(sep, scene.spectral.centre).max(axis=1) >= scene.effects.pb_cutoff
+
     for i in range(len(scene.populations)):
         if i not in drawn:
-            drawn[i] = _draw_population(i, scene, seed, pointings, centre)
+            drawn[i] = _draw_population(i, scene, seed, pointings, centre, covered)
 
     # every source must be inside some pointing (standard beam, centre frequency)
     fc = scene.spectral.centre

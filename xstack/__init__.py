@@ -7,9 +7,42 @@ cheap. See ``docs/`` and Lindroos et al. (2015, MNRAS 446, 3502) for the method.
 from __future__ import annotations
 
 import importlib
+import os
+import sys
+from pathlib import Path
 from typing import Any
 
 __version__ = "0.1.0"
+
+
+def numba_cache_dir() -> Path:
+    """Where xstack's compiled numba kernels are cached: never inside the installed package.
+
+    ``NUMBA_CACHE_DIR`` if the user set it; else ``XSTACK_CACHE_DIR/numba``; else
+    ``$XDG_CACHE_HOME/xstack/numba`` (``~/.cache/xstack/numba``). numba's own default writes
+    ``__pycache__/*.nbi`` files beside the package's modules: those outlive ``pip uninstall``
+    and turn the directory into a namespace package that shadows a later install.
+    """
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return Path(os.environ["NUMBA_CACHE_DIR"])
+    if os.environ.get("XSTACK_CACHE_DIR"):
+        return Path(os.environ["XSTACK_CACHE_DIR"]) / "numba"
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "xstack" / "numba"
+
+
+def _configure_numba_cache() -> None:
+    # Must run before any kernel module is imported (they are, lazily, below this package):
+    # numba reads NUMBA_CACHE_DIR when it is first imported, and config.CACHE_DIR when a
+    # cached function is first compiled.
+    path = str(numba_cache_dir())
+    os.environ.setdefault("NUMBA_CACHE_DIR", path)
+    numba = sys.modules.get("numba")
+    if numba is not None and not getattr(numba.config, "CACHE_DIR", ""):
+        numba.config.CACHE_DIR = path
+
+
+_configure_numba_cache()
 
 #: public name -> "module:attribute"
 _API = {
@@ -45,7 +78,7 @@ _API = {
     "estimate_noise": "xstack.noise.estimate:estimate_noise",
 }
 
-__all__ = ["__version__", *_API]
+__all__ = ["__version__", "numba_cache_dir", *_API]
 
 
 def __getattr__(name: str) -> Any:

@@ -439,8 +439,9 @@ def test_noise_random_positions_inside_the_field_and_apart(centre, method):
     pos = res.positions_deg  # (R, n, 2)
     assert pos.shape == (30, 12, 2)
     r = _sep_deg(pos[..., 0], pos[..., 1], *centre)
-    # default field: the part of the beam the targets occupy
-    assert r.max() <= 1.02 * _sep_deg(ra_t, dec_t, *centre).max() + 1e-9
+    # default region: the targets' footprint (hull grown by its margin), inside the beam
+    margin = float(res.extra["region"].split("grown by ")[1].split(" arcsec")[0]) / 3600
+    assert r.max() <= _sep_deg(ra_t, dec_t, *centre).max() + 1.01 * margin
     beam = standard_beam("VLA", 25.0)
     freq = next(iter(data.values())).frequency.values
     assert np.all(beam(np.radians(r)[..., None], freq) >= beam.cutoff)

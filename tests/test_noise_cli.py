@@ -70,3 +70,28 @@ def test_noise_cli_engines_agree(tmp_path, capsys):
         out[engine] = json.loads(capsys.readouterr().out)
     assert out["antenna"]["engine"] == "antenna" and out["row"]["engine"] == "row"
     assert abs(out["antenna"]["noise_jy"] / out["row"]["noise_jy"] - 1) < 1e-9
+
+
+def test_noise_cli_region_and_warnings(tmp_path, capsys):
+    """The region used is printed (text and JSON); a poorly defined footprint warns,
+    naming --region; analytic prints the optimal-weights noise beside its own."""
+    from astropy.table import Table
+
+    store, cat = _setup(tmp_path)
+    assert main(["noise", str(store), str(cat), "--method", "random", "--realizations", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "region: hull: convex hull of 10 targets" in out and "arcmin^2" in out
+    assert main(["noise", str(store), str(cat), "--method", "mc", "--realizations", "4",
+                 "--region", "beam", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["region"].startswith("beam:")
+    few = tmp_path / "few.csv"
+    Table.read(cat, format="ascii.csv")[:5].write(few, format="ascii.csv")
+    assert main(["noise", str(store), str(few), "--method", "random", "--realizations",
+                 "4"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: only 5 targets" in err and "--region" in err
+    assert main(["noise", str(store), str(cat), "--method", "analytic"]) == 0
+    assert "optimal inverse-variance weights" in capsys.readouterr().out
+    assert main(["noise", str(store), str(cat), "--method", "random", "--realizations", "3",
+                 "--region", "nowhere.ecsv"]) == 1
+    assert "not hull, beam" in capsys.readouterr().err

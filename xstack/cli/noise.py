@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 from xstack.errors import XstackError
@@ -34,7 +35,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--uvmin", help="minimum uv distance (5000m, 23.8klambda)")
     p.add_argument("--uvmax", help="maximum uv distance")
     p.add_argument("--field-radius", type=float, metavar="ARCSEC",
-                   help="radius around each pointing for random positions")
+                   help="radius around each pointing for random positions (default: the beam "
+                        "cutoff; --region applies as well)")
+    p.add_argument("--region", default="hull", metavar="hull|beam|POLYGON|MASK.fits",
+                   help="mc/random: where random positions go, inside the beams: hull (default: "
+                        "the targets' footprint, convex hulls of their groups grown by half "
+                        "their typical spacing), beam (the whole beam), a polygon file "
+                        "(ECSV/CSV, ra dec vertices in deg) or a FITS mask (nonzero = inside)")
     p.add_argument("--psf", help="image domain: dirty beam FITS for --method mc "
                                  "(default: X.psf.fits beside the image)")
     p.add_argument("--engine", choices=("auto", "antenna", "row"), default="auto",
@@ -68,16 +75,22 @@ def run(args: argparse.Namespace) -> int:
     domain = "image" if data.suffix.lower() in (".fits", ".fit", ".fts") else "uv"
     if domain == "image" and args.profile_png:
         raise XstackError("--profile-png needs visibilities (a .zarr store), not an image")
-    res = estimate_noise(
-        data, args.catalog, domain=domain, psf=args.psf, method=args.method, realizations=args.realizations,
-        flux=args.flux, min_separation_arcsec=args.min_separation, avoid=args.avoid,
-        seed=args.seed, weighting=args.weighting,
-        primary_beam=(("auto" if domain == "image" else None) if args.primary_beam == "auto"
-                      else args.primary_beam),
-        pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
-        field_radius_arcsec=args.field_radius, engine=args.engine,
-        profile_bins=args.profile_bins if args.profile_png else 0,
-        progress=not args.no_progress and sys.stderr.isatty())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        res = estimate_noise(
+            data, args.catalog, domain=domain, psf=args.psf, method=args.method,
+            realizations=args.realizations,
+            flux=args.flux, min_separation_arcsec=args.min_separation, avoid=args.avoid,
+            seed=args.seed, weighting=args.weighting,
+            primary_beam=(("auto" if domain == "image" else None) if args.primary_beam == "auto"
+                          else args.primary_beam),
+            pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
+            field_radius_arcsec=args.field_radius, engine=args.engine,
+            profile_bins=args.profile_bins if args.profile_png else 0,
+            progress=not args.no_progress and sys.stderr.isatty(), region=args.region)
+    for w in caught:
+        if issubclass(w.category, UserWarning):
+            print(f"warning: {w.message}", file=sys.stderr)
     files = {}
     if args.png and res.realizations >= 2:
         from xstack.noise.plot import plot_histogram
@@ -100,10 +113,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"noise estimate ({res.method}, {res.realizations} realisations, "
           f"{res.n_positions} positions)")
     print(f"  noise  = {res.noise_jy * uj:.4g} uJy")
+    if "optimal_noise_jy" in res.extra:
+        print(f"  (optimal inverse-variance weights would give "
+              f"{res.extra['optimal_noise_jy'] * uj:.4g} uJy)")
     if res.bias_jy is not None:
         print(f"  bias   = {res.bias_jy * uj:.4g} uJy")
     if res.target_flux_jy is not None:
         print(f"  target stack = {res.target_flux_jy * uj:.4g} uJy")
+    if "region" in res.extra:
+        print(f"  region: {res.extra['region']}")
     for k, v in files.items():
         print(f"  {k}: {v}")
     return 0

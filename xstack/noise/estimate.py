@@ -29,7 +29,7 @@ from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn, read
 from xstack.errors import XstackError
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.noise import kernels
-from xstack.noise.positions import ARCSEC, random_positions
+from xstack.noise.positions import ARCSEC, make_region, random_positions
 
 METHODS = ("analytic", "mc", "random", "bootstrap")
 ENGINES = ("auto", "antenna", "row")
@@ -43,7 +43,8 @@ class NoiseResult:
     Attributes
     ----------
     method : analytic | mc | random | bootstrap
-    noise_jy : the noise estimate, Jy (std of ``values`` with ddof=1; eq. 6 for analytic)
+    noise_jy : the noise estimate, Jy (std of ``values`` with ddof=1; for analytic the
+        thermal noise of the estimator actually used, from the visibility weights)
     bias_jy : mc: mean(values - injected); random: mean(values); bootstrap:
         mean(values) - target_flux_jy; analytic: None
     realizations : number of realisations (0 for analytic)
@@ -195,7 +196,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                    pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None,
                    field_radius_arcsec: float | None = None, profile_bins: int = 0,
                    psf: Any = None, progress: bool = False, engine: str = "auto",
-                   antenna_tol_rad: float = kernels.ANTENNA_TOL_RAD) -> NoiseResult:
+                   antenna_tol_rad: float = kernels.ANTENNA_TOL_RAD,
+                   region: Any = "hull") -> NoiseResult:
     """Estimate the noise and bias of the uv-stacked flux at ``positions``.
 
     Parameters
@@ -207,9 +209,11 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         The targets: catalog path / astropy Table (``ra``, ``dec`` deg, optional ``flux`` Jy,
         ``weight``) or ``(ra_deg, dec_deg)`` arrays.
     method
-        ``analytic`` (eq. 6 from sigma_k of every position), ``mc`` (inject fake sources of
-        the targets' flux and number at random positions, stack, repeat), ``random`` (stack
-        random empty positions) or ``bootstrap`` (resample the targets with replacement).
+        ``analytic`` (the thermal noise of the estimator used, from the visibility weights;
+        the optimal-weights value of eq. 6 in ``extra["optimal_noise_jy"]``), ``mc``
+        (inject fake sources of the targets' flux and number at random positions, stack,
+        repeat), ``random`` (stack random empty positions) or ``bootstrap`` (resample the
+        targets with replacement).
     realizations
         Number of realisations R (>= 2) for mc/random/bootstrap; all are computed in one
         pass over the data.
@@ -238,9 +242,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     uvmin, uvmax
         uv range (``5000m``, ``23.8klambda``).
     field_radius_arcsec
-        Radius around each pointing inside which random positions are placed. Default: the
-        distance of the farthest target in that pointing (at most the beam-cutoff radius), so
-        random positions see the same range of primary-beam attenuation as the targets.
+        Radius around each pointing inside which random positions may be placed (further
+        limited by ``region``). Default: the radius of the beam cutoff (highest frequency).
     psf
         Image domain: the dirty beam (FITS) for ``mc``.
     profile_bins
@@ -256,6 +259,15 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         the per-row kernel. ``analytic`` and ``bootstrap`` always use the per-row kernel.
         The engine used is reported in ``extra["engine"]`` (``antenna``, ``row`` or
         ``mixed``), with the block counts and the reason of the first fallback.
+    region
+        Where random / injected positions are drawn (``mc``, ``random``), always intersected
+        with the pointings' discs: ``"hull"`` (default: the targets' footprint, convex hulls
+        of their friends-of-friends groups grown by half their median nearest-neighbour
+        spacing, :func:`xstack.noise.positions.hull_region`), ``"beam"`` (the whole beam
+        inside the cutoff / field radius), a polygon file (ECSV/CSV of vertex ``ra``, ``dec``
+        in degrees) or a FITS mask (finite nonzero pixels inside). Reported in
+        ``extra["region"]`` with its area. Stacked noise grows as 1/A towards the beam edge,
+        so positions must sample the same beam response as the targets.
     antenna_tol_rad
         Largest accepted phase error (radians, at the highest frequency and the farthest
         position) of the per-antenna factorisation; see
@@ -284,6 +296,10 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         raise XstackError(f"need at least 2 realisations to estimate a scatter, got {realizations}")
     if domain == "image":
         from xstack.noise.image import estimate_noise_image
+
+        if not (region is None or (isinstance(region, str) and region.lower() == "hull")):
+            raise XstackError("region: only the default (hull) is available for images so far; "
+                              "drop --region")
 
         return estimate_noise_image(data, positions, method=method, realizations=realizations,
                                     flux=flux, min_separation_arcsec=min_separation_arcsec,
@@ -322,23 +338,22 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
             a_ra, a_dec, _ = _positions_from(avoid)
             av_ra.append(a_ra)
             av_dec.append(a_dec)
+        # where random positions go: the targets' footprint (default), the whole beam, a
+        # polygon or a mask; always inside some pointing's disc (beam cutoff / field radius)
+        reg = make_region(region, ra_t[inside_any], dec_t[inside_any], min_margin=min_sep)
         centres = np.array([pt.centre for pt in pointings])
-        radii = np.array([pt.radius(None if field_radius_arcsec is None
-                                    else field_radius_arcsec * ARCSEC) for pt in pointings])
-        if field_radius_arcsec is None:
-            # place random positions in the part of each beam the targets occupy: stacked
-            # noise grows as 1/A towards the beam edge, so a wider region would overstate it
-            for ip, pt in enumerate(pointings):
-                inside_p = pt.inside(ra_t, dec_t)
-                if inside_p.any():
-                    dist = angular_separation(ra_t[inside_p], dec_t[inside_p], *pt.centre)
-                    radii[ip] = min(radii[ip], float(dist.max()) * 1.02 + 1e-9)
+        radii = np.array([
+            np.pi if (field_radius_arcsec is None and pt.beam.model == "none"
+                      and reg.proposal is not None)  # no beam edge: the region alone
+            else pt.radius(None if field_radius_arcsec is None else field_radius_arcsec * ARCSEC)
+            for pt in pointings])
         uniq, idx = np.unique(np.round(centres, 12), axis=0, return_index=True)
+        extra_region = reg.describe(centres[idx], radii[idx])
         n_fake = int(inside_any.sum())
         r_ra, r_dec = random_positions(n_fake, realizations, centres[idx], radii[idx],
                                        avoid_ra=np.concatenate(av_ra),
                                        avoid_dec=np.concatenate(av_dec), min_separation=min_sep,
-                                       rng=rng)
+                                       rng=rng, region=reg)
         s_fake = np.zeros(n_fake)
         if method == "mc":
             s_fake = _injected_fluxes(flux, cat, inside_any, n_fake)
@@ -456,6 +471,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                              "n_pointings": len(pointings), "seed": int(seed)}
     if min_sep is not None:
         extra["min_separation_arcsec"] = float(min_sep / ARCSEC)
+        extra["region"] = extra_region
     if method in ("mc", "random"):
         extra["engine"] = ("mixed" if all(engine_blocks.values()) else
                            "antenna" if engine_blocks["antenna"] else "row")
@@ -465,18 +481,11 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     if method in ("analytic", "bootstrap"):
         target_flux = _combine_targets(X_t, inside_t, wtot_p, wk_t, np.ones(n_t))
         if method == "analytic":
-            # one position alone: F_k = sum_p w_pk X_pk / sum_p w_pk W_p
-            wsum_in = (wk_t * inside_t * wtot_p[:, None]).sum(axis=0)
-            ok = wsum_in > 0
-            sig2 = np.full(n_t, np.inf)
-            sig2[ok] = (wk_t**2 * var_t).sum(axis=0)[ok] / wsum_in[ok] ** 2
-            noise = float(1.0 / np.sqrt(np.sum(1.0 / sig2[ok])))
-            wk_mean = (wk_t * inside_t).sum(axis=0)
-            wn = wk_mean[ok] / wk_mean[ok].sum()
-            extra["estimator_noise_jy"] = float(np.sqrt(np.sum(wn**2 * sig2[ok])))
-            extra["sigma_k_median_jy"] = float(np.median(np.sqrt(sig2[ok])))
+            noise, extra_a = _analytic_noise(var_t, inside_t, wtot_p, wk_t)
+            n_used = int(extra_a.pop("_n_used"))
+            extra.update(extra_a)
             return NoiseResult("analytic", noise, None, 0, np.zeros(0), None,
-                               target_flux, int(ok.sum()), extra=extra)
+                               target_flux, n_used, extra=extra)
         counts = np.stack([np.bincount(rng.integers(0, n_t, n_t), minlength=n_t)
                            for _ in range(realizations)])
         vals = np.array([_combine_targets(X_t, inside_t, wtot_p, wk_t, c) for c in counts])
@@ -516,6 +525,33 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                        n_real, vals, injected, target_flux, int(sizes[0]), profile=profile,
                        extra=extra, positions_deg=pos,
                        injected_flux_jy=scale * np.stack(groups_s[:n_real]))
+
+
+def _analytic_noise(var: np.ndarray, inside: np.ndarray, wtot: np.ndarray, w: np.ndarray
+                    ) -> tuple[float, dict[str, Any]]:
+    """Noise of the estimator actually used, and that of optimal weights (eq. 6).
+
+    ``var[p, k]`` = Var(X_pk) = sum_vis W / A_pk^2 (W = 1 / sigma^2 of a real part),
+    ``w[p, k]`` the position weights, ``wtot[p]`` = sum_vis W of pointing p. The stacked flux
+    is F = sum_p sum_k w_pk X_pk / D with D = sum_p s_p W_p, s_p = sum_k w_pk (inside); for
+    independent thermal noise and positions far apart compared with the synthesized beam
+
+        Var F = sum_p sum_k w_pk^2 Var(X_pk) / D^2.
+
+    The optimal (inverse-variance) weights give (sum_k sigma_k^-2)^-1/2 with sigma_k the noise
+    of position k stacked alone (its pointings combined as for F).
+    """
+    wi = w * inside
+    D = float(np.sum(wi.sum(axis=1) * wtot))
+    noise = float(np.sqrt(np.sum(wi**2 * var)) / D) if D > 0 else float("nan")
+    wsum_in = (wi * wtot[:, None]).sum(axis=0)
+    ok = wsum_in > 0
+    sig2 = np.full(w.shape[1], np.inf)
+    sig2[ok] = (wi**2 * var).sum(axis=0)[ok] / wsum_in[ok] ** 2
+    extra = {"optimal_noise_jy": float(1.0 / np.sqrt(np.sum(1.0 / sig2[ok]))),
+             "sigma_k_median_jy": float(np.median(np.sqrt(sig2[ok]))),
+             "_n_used": int(ok.sum())}
+    return noise, extra
 
 
 def _group_sums(pt: _Pointing, uvw, vis_w, wsum, l, m, n1, coef, b, starts, bins, nbins,

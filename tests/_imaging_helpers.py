@@ -68,7 +68,9 @@ def make_sky_partition(sources=(), *, n_ant: int = 12, n_time: int = 24, n_chan:
         dish_diameters=np.full(n_ant, dish), frequency=freq,
         channel_width=np.full(n_chan, chan_width), polarization=list(pols),
         phase_center=phase_center, telescope_name=telescope, integration_time=10.0,
-        field_id=field_id)
+        field_id=field_id,
+        # visibilities at channel centres and integration mid-points: not smeared
+        attrs={"smearing": {"bandwidth": False, "time": False}})
 
 
 def offset_position(dra_arcsec: float, ddec_arcsec: float, center=PHASE_CENTER):

@@ -34,7 +34,7 @@ def test_image_cli_outputs(store, capsys):
     assert rc == 0
     payload = json.loads(capsys.readouterr().out)
     files = payload["files"]
-    assert set(files) == {"image", "psf", "residual", "model", "png"}
+    assert set(files) == {"image", "psf", "residual", "model", "pb", "png"}  # + the beam
     for f in files.values():
         assert (d / f.split("/")[-1]).exists()
     assert files["psf"].endswith("img.psf.fits")

@@ -224,7 +224,6 @@ def test_linear_mosaic_equals_direct_fourier_sum(tmp_path):
     ra, dec = (np.radians(a) for a in wcs.pixel_to_world_values(xx, yy))
     num = np.zeros((size, size))
     den = np.zeros((size, size))
-    best = np.zeros((size, size))
     for ds in parts.values():
         ra0, dec0 = ds.attrs["phase_center"]
         l = np.cos(dec) * np.sin(ra - ra0)
@@ -245,13 +244,15 @@ def test_linear_mosaic_equals_direct_fourier_sum(tmp_path):
                  res.frequency)
         num += a * d
         den += a * a
-        best = np.maximum(best, a)
-    expect = np.where(best >= 0.05, num / den, np.nan)
+    # coverage: the normalised effective beam sqrt(sum A_p^2) / its maximum >= the cutoff
+    pb_expect = np.sqrt(den / 3) / np.sqrt(den / 3).max()
+    expect = np.where(pb_expect >= 0.05, num / den, np.nan)
     assert np.array_equal(np.isnan(res.image), np.isnan(expect))
     ok = np.isfinite(expect)
     assert ok.sum() > 0.5 * ok.size
     assert np.max(np.abs(res.image[ok] - expect[ok])) < 1e-5 * np.nanmax(np.abs(expect))
-    np.testing.assert_allclose(res.pb, np.sqrt(den / 3), rtol=1e-6)  # equal pointing weights
+    np.testing.assert_allclose(res.pb, pb_expect, rtol=1e-6)  # equal pointing weights
+    assert res.header["XSPBNORM"] == pytest.approx(np.sqrt(den / 3).max(), rel=1e-6)
 
 
 def angular_separation_deg(ra1, dec1, ra2, dec2):
@@ -299,9 +300,9 @@ def test_linear_mosaic_recovers_flux_between_pointings(tmp_path):
     # the flat-noise image is the mosaic times the effective beam
     ok = np.isfinite(res.image)
     np.testing.assert_allclose(res.extra["uncorrected"][ok], (res.image * res.pb)[ok], rtol=1e-9)
-    # NaN exactly where no beam reaches the 0.1 cutoff: with weights 1:4, pb^2 = 0.2 A_0^2 +
-    # 0.8 A_1^2, so pb < 0.1 sqrt(0.2) is surely outside and pb >= 0.1 surely inside
-    assert np.isnan(res.image[res.pb < 0.1 * math.sqrt(0.2) * 0.999]).all()
+    # NaN exactly where the effective beam (peak 1) is below the 0.1 cutoff
+    assert res.pb.max() == pytest.approx(1.0)
+    assert np.isnan(res.image[res.pb < 0.1]).all()
     assert np.isfinite(res.image[res.pb >= 0.1]).all()
     assert np.isnan(res.image).any()
 

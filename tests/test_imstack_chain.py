@@ -47,18 +47,21 @@ def test_stack_of_an_xstack_dirty_image_with_its_psf(tmp_path):
         paths.append(p)
         results.append(res)
     pos = np.c_[ra, dec]
+    # the simulated visibilities carry no primary beam (A = 1): say so, since the image is
+    # (correctly) marked as not primary-beam corrected and would otherwise be divided by A
     for k, path in enumerate(paths):
         out = tmp_path / f"near{k}.fits"
-        near = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", out=out)
+        near = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", out=out, pb="none")
         # the dirty image at the nearest pixel is the PSF at the offset; the stack's PSF
         # extension (the PSF displaced by the offset) predicts it for this non-Gaussian beam
         back = read_stack_fits(out)
         assert near.flux_jy == pytest.approx(back["psf"][back["centre"]], rel=2e-3)
         assert near.flux_jy < 0.99  # the offset does cost flux at this sampling
-        fourier = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", subpixel="fourier")
+        fourier = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", subpixel="fourier",
+                          pb="none")
         assert fourier.flux_jy == pytest.approx(1.0, abs=5e-3)
         assert fourier.beam_arcsec == pytest.approx(first.beam, rel=1e-6)
         # the in-memory ImageResult (image, header, psf) stacks like its FITS files
-        mem = imstack(results[k], pos[k:k + 1], stamp_size=48, weighting="none")
+        mem = imstack(results[k], pos[k:k + 1], stamp_size=48, weighting="none", pb="none")
         np.testing.assert_allclose(mem.stacked.values, near.stacked.values, rtol=1e-6)
         np.testing.assert_allclose(mem.psf_stamp.values, near.psf_stamp.values, atol=1e-6)

@@ -173,7 +173,8 @@ def scene(tmp_path_factory):
                             noise=0.5, seed=4, attenuation=att)
     img = make_image(ds, size=640, cell_arcsec=4.0, pbcor=True)
     tmp = tmp_path_factory.mktemp("localnoise")
-    resid = img.write(tmp / "residual.fits", img.image, kind="residual")
+    # the corrected dirty image (kind "image": XSPBCOR = T); the data are their own residual
+    resid = img.write(tmp / "residual.fits", img.image, kind="image")
     plain = make_image(ds, size=640, cell_arcsec=4.0, pbcor=False)
     plain_path = plain.write(tmp / "residual_nopb.fits", plain.image, kind="residual")
     store = tmp / "data.zarr"
@@ -230,9 +231,30 @@ def test_catalog_sigma_column_is_overridden_with_a_warning(scene):
     assert np.ptp(given.positions["weight_used"][:, 0]) == 0
 
 
-def test_uncorrected_residual_image_warns(scene):
+def test_uncorrected_residual_image_gives_the_corrected_noise(scene):
+    """An uncorrected residual (XSPBCOR = F) is divided by its beam: the same sigma_k (issue 10,
+    item 5: one primary-beam convention, read from the header)."""
+    corr = local_noise(scene["resid"], scene["cat"])
+    plain = measure_local_noise(scene["plain"], scene["cat"])
+    assert plain.pbcor is False and plain.beam is not None
+    # sigma/A at the position vs the rms of a corrected stamp, whose pixels each carry their
+    # own 1/A (the stamp spans a range of A): equal to a few % (measured up to 6.5 % at A~0.4)
+    np.testing.assert_allclose(plain.sigma, corr, rtol=0.08)
+    a = uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["plain"])
+    b = uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["resid"])
+    assert a.flux_err_jy == pytest.approx(b.flux_err_jy, rel=0.01)
+
+
+def test_uncorrected_image_without_a_beam_warns(scene, tmp_path):
+    from astropy.io import fits
+
+    with fits.open(scene["plain"]) as h:
+        hdu = h[0].copy()
+    hdu.header["TELESCOP"] = "NOBODY"
+    path = tmp_path / "nobeam.fits"
+    hdu.writeto(path)
     with pytest.warns(UserWarning, match="not primary-beam corrected"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["plain"])
+        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=path)
 
 
 def test_positions_in_no_pointing_need_no_estimate(scene):
@@ -321,7 +343,9 @@ def test_cli_bad_input_writes_nothing(scene, tmp_path, linear_fits, capsys):
         out = tmp_path / f"o{i}.zarr"
         rc = main([*base, str(out), *extra, "--no-progress"])
         err = capsys.readouterr().err
-        assert rc == 1 and err.startswith("error:") and msg in err, (extra, err)
+        # (a warning about the input may come first; the error is the last line)
+        assert rc == 1 and err.strip().splitlines()[-1].startswith("error:") and msg in err, \
+            (extra, err)
         assert "Traceback" not in err
         assert _written(tmp_path, f"o{i}") == [], extra
     with warnings.catch_warnings():

@@ -16,9 +16,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "image", help="make a (CLEANed) Stokes I image of a store",
         description="Image a store with ducc0 (multi-frequency synthesis, Stokes I from the "
                     "parallel hands). Writes OUT.fits (restored image if --niter > 0, else the "
-                    "dirty image) beside OUT.psf.fits, OUT.residual.fits and OUT.model.fits. "
-                    "Partitions with different phase centres (a mosaic) give a primary-beam "
-                    "corrected linear mosaic of dirty images (no CLEAN).")
+                    "dirty image) beside OUT.psf.fits, OUT.residual.fits, OUT.model.fits and "
+                    "OUT.pb.fits (the image's primary beam, named in its header: XSPBFILE; "
+                    "XSPBCOR says whether the image is corrected). Partitions with different "
+                    "phase centres (a mosaic) give a primary-beam corrected linear mosaic of "
+                    "dirty images (no CLEAN) whose OUT.pb.fits is the mosaic's effective beam.")
     p.add_argument("data", help="input store (.zarr)")
     p.add_argument("out", help="output image (.fits)")
     p.add_argument("--size", type=int, required=True, help="image size in pixels (even, >= 32)")
@@ -51,13 +53,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def output_names(out: str | Path) -> dict[str, Path]:
-    """File names written beside ``OUT.fits``: image, psf, residual, model (and png)."""
+    """File names written beside ``OUT.fits``: image, psf, residual, model, pb (and png)."""
     out = Path(out)
     stem = out.name[:-5] if out.name.lower().endswith(".fits") else out.name
     base = out.parent
     return {"image": out, "psf": base / f"{stem}.psf.fits",
             "residual": base / f"{stem}.residual.fits", "model": base / f"{stem}.model.fits",
-            "png": base / f"{stem}.png"}
+            "pb": base / f"{stem}.pb.fits", "png": base / f"{stem}.png"}
 
 
 def robust_rms(values: np.ndarray) -> float:
@@ -138,10 +140,15 @@ def run(args: argparse.Namespace) -> int:
         residual = result.extra.get("uncorrected", result.image)
         model = np.zeros_like(residual)
         n_components = 0
+    # the beam first: the image and residual name it (XSPBFILE) and are written after it
+    pb_name = names["pb"].name
+    result.write(names["pb"], result.pb, kind="pb", overwrite=args.overwrite)
     result.write(names["psf"], result.psf, kind="psf", overwrite=args.overwrite)
-    result.write(names["residual"], residual, kind="residual", overwrite=args.overwrite)
+    result.write(names["residual"], residual, kind="residual", overwrite=args.overwrite,
+                 pb_file=pb_name)
     result.write(names["model"], model, kind="model", overwrite=args.overwrite)
-    result.write(names["image"], result.image, kind="image", overwrite=args.overwrite)
+    result.write(names["image"], result.image, kind="image", overwrite=args.overwrite,
+                 pb_file=pb_name)
     if args.png:
         write_png(names["png"], result.image, result.wcs, result.beam, Path(args.out).name)
     rms = robust_rms(residual)
@@ -157,5 +164,6 @@ def run(args: argparse.Namespace) -> int:
             "partitions": list(result.partitions), "weighting": result.weighting,
             "cell_arcsec": result.cell_arcsec, "size": [result.image.shape[1], result.image.shape[0]],
             "n_pointings": int(result.header.get("XSMOSAIC", 1)),
+            "pb_corrected": bool(result.header.get("XSPBCOR", False)),
         })
     return 0

@@ -42,9 +42,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="PSF image (once, or once per image; default X.psf.fits beside X.fits)")
     p.add_argument("--pb", action="append", default=None, metavar="PB",
                    help="primary beam: airy|gaussian|vla|none or a PB FITS image (once, or once "
-                        "per image; default: the telescope's standard beam)")
+                        "per image; default: the beam file the image names (XSPBFILE, "
+                        "X.pb.fits from xstack image), else the telescope's standard beam)")
+    p.add_argument("--image-corrected", action="append", default=None, choices=("yes", "no"),
+                   help="whether the image is primary-beam corrected (once, or once per image; "
+                        "default: its header's XSPBCOR). The stack always measures corrected "
+                        "fluxes: an uncorrected image is divided by the beam")
     p.add_argument("--pbcor", action="store_true",
-                   help="divide each stamp by the primary beam (images not PB-corrected)")
+                   help="same as --image-corrected no (divide each stamp by the primary beam)")
     p.add_argument("--mask-radius", type=float, default=None, metavar="ARCSEC",
                    help="radius of the central mask for sigma_k (default: BMAJ)")
     p.add_argument("--filter", type=_filter_arg, default=None, metavar="N|DIST",
@@ -68,6 +73,13 @@ def _one_or_list(values: list[str] | None) -> Any:
     return values[0] if len(values) == 1 else values
 
 
+def _corrected(values: list[str] | None) -> Any:
+    if not values:
+        return None
+    flags = [v == "yes" for v in values]
+    return flags[0] if len(flags) == 1 else flags
+
+
 def run(args: argparse.Namespace) -> int:
     from xstack.cli import emit_json
     from xstack.imstack.stack import imstack
@@ -81,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     result = imstack(images, catalog, stamp_size=args.stamp_size, method=args.method,
                      weighting=args.weighting, subpixel=args.subpixel or False,
                      pb=_one_or_list(args.pb), pbcor=args.pbcor, psf=_one_or_list(args.psf),
+                     image_corrected=_corrected(args.image_corrected),
                      beam_mask_arcsec=args.mask_radius, filter_lowfreq=args.filter,
                      skip_outside=args.skip_outside, out=out, cube_format=args.cube_format,
                      plot=not args.no_png, overwrite=args.overwrite,

@@ -24,6 +24,7 @@ from the residuals, unbiased for correlated noise: r^T r / (N - tr(H R)).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +38,9 @@ from xstack.fit.result import FitResult
 def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
     """Read a stacked stamp FITS (primary image, optional ``PSF`` extension).
 
-    Returns ``stamp``, ``psf`` (or None), ``pixel_arcsec`` (|dx|, |dy|) and ``centre``
-    (0-based (y, x) of the reference pixel = the stacking position).
+    Returns ``stamp``, ``psf`` (or None), ``pixel_arcsec`` (|dx|, |dy|), ``centre``
+    (0-based (y, x) of the reference pixel = the stacking position) and ``pbcor`` (the
+    stamp's ``STPBCOR``: True if its flux is primary-beam corrected, None if it says nothing).
     """
     from astropy.io import fits
     from astropy.wcs import WCS
@@ -61,8 +63,9 @@ def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
     scales = np.abs(np.diag(wcs.pixel_scale_matrix)) * 3600.0
     centre = (int(round(header.get("CRPIX2", stamp.shape[0] // 2 + 1))) - 1,
               int(round(header.get("CRPIX1", stamp.shape[1] // 2 + 1))) - 1)
+    pbcor = header.get("STPBCOR")
     return {"stamp": stamp, "psf": None if psf is None else np.squeeze(psf),
-            "psf_smeared": smeared,
+            "psf_smeared": smeared, "pbcor": None if pbcor is None else bool(pbcor),
             "pixel_arcsec": (float(scales[0]), float(scales[1])), "centre": centre}
 
 
@@ -175,7 +178,10 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     -------
     FitResult
         ``domain="image"``; ``extra`` holds ``background_jy_per_beam`` and its error,
-        ``noise_correlation``, ``sigma_jy_per_beam`` and ``effective_dof``.
+        ``noise_correlation``, ``sigma_jy_per_beam``, ``effective_dof`` and
+        ``primary_beam`` (the stamp's convention: ``"corrected"`` for an ``xstack imstack``
+        stamp, whose ``STPBCOR = T`` says its flux is primary-beam corrected; ``"not stated"``
+        for an array or a FITS stamp without it, which is fitted as is with a warning).
     """
     from scipy.optimize import least_squares
 
@@ -184,8 +190,15 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     if noise_correlation not in ("psf", "residual", "none"):
         raise XstackError(f"unknown noise_correlation {noise_correlation!r} (psf, residual, none)")
     smeared = False
+    pb_convention = "not stated"
     if isinstance(stamp, (str, os.PathLike)):
         info = read_stamp_fits(stamp)
+        if info["pbcor"] is None:
+            warnings.warn(f"{stamp}: the stamp does not say whether its flux is primary-beam "
+                          "corrected (no STPBCOR): fitted as is; stack with xstack imstack, "
+                          "which measures corrected fluxes and records it", stacklevel=2)
+        else:
+            pb_convention = "corrected" if info["pbcor"] else "not corrected"
         img = info["stamp"]
         pix = info["pixel_arcsec"]
         centre = info["centre"] if centre is None else centre
@@ -316,6 +329,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
             (["background_jy_per_beam"] if background else [])
     values = [S] + ([a_hat] if model == "gaussian" else []) + ([c] if background else [])
     extra = {"noise_correlation": noise_correlation, "sigma_jy_per_beam": float(np.sqrt(sigma2)),
+             "primary_beam": pb_convention,
              "psf_peak": conv.peak, "psf_normalised": normalise,
              "effective_dof": float(dof_eff), "condition_number": float(cond),
              "pixel_arcsec": list(pix), "centre_pixel": list(centre)}

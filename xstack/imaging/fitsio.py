@@ -12,6 +12,9 @@ Layout written by xstack (``write_image``)::
     CTYPE4 = 'STOKES' (CRVAL4 = 1 = I; degenerate)
     BUNIT  = 'Jy/beam' (image, residual), 'Jy/pixel' (model), '' (PSF)
     BMAJ, BMIN (deg), BPA (deg east of north): Gaussian fit to the PSF main lobe
+    XSPBCOR  = T/F  the image IS primary-beam corrected (image) / is not (residual, model)
+    XSPBFILE = 'OUT.pb.fits'  the effective primary beam travelling with the image (a name
+               beside the image file); XSPBCUT its cutoff (docs/conventions.md)
 
 ``read_image`` reads any FITS image with a celestial WCS (2-D, or with degenerate extra axes)
 and returns the 2-D plane, its celestial WCS and the header.
@@ -100,6 +103,47 @@ def make_header(ny: int, nx: int, cell_arcsec: float, phase_center: tuple[float,
     for key, value in (extra or {}).items():
         h[key] = value
     return h
+
+
+#: Header keyword: True if the image is primary-beam corrected (xstack writes it on every image).
+PBCOR_KEY = "XSPBCOR"
+#: Header keyword: file name (beside the image) of the primary beam travelling with the image.
+PBFILE_KEY = "XSPBFILE"
+#: Header keyword: primary-beam cutoff of the image (coverage: beam >= cutoff).
+PBCUT_KEY = "XSPBCUT"
+
+
+def pb_path_for(path: str | os.PathLike) -> Path:
+    """The primary-beam file written beside ``X.fits``: ``X.pb.fits`` (like CASA's ``.pb``)."""
+    path = Path(path)
+    stem = path.name[:-5] if path.name.lower().endswith(".fits") else path.name
+    return path.with_name(f"{stem}.pb.fits")
+
+
+def pb_corrected_from_header(header: fits.Header) -> bool | None:
+    """What the header says about primary-beam correction: True, False, or None (nothing)."""
+    if PBCOR_KEY not in header:
+        return None
+    value = header[PBCOR_KEY]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    text = str(value).strip().upper()
+    if text in ("T", "TRUE", "1", "YES", "Y"):
+        return True
+    if text in ("F", "FALSE", "0", "NO", "N"):
+        return False
+    return None
+
+
+def pb_file_from_header(header: fits.Header, image_path: str | os.PathLike | None) -> Path | None:
+    """The primary-beam file named by ``XSPBFILE`` (relative to the image's folder), or None."""
+    name = str(header.get(PBFILE_KEY, "") or "").strip()
+    if not name:
+        return None
+    p = Path(name)
+    if not p.is_absolute() and image_path is not None:
+        p = Path(image_path).parent / p
+    return p
 
 
 def celestial_wcs(header: fits.Header) -> WCS:

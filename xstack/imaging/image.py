@@ -33,12 +33,20 @@ import xarray as xr
 from astropy.io import fits
 from astropy.wcs import WCS
 
+from xstack._select import PARALLEL_HANDS, sky_correlations
 from xstack.coords import angular_separation
 from xstack.errors import XstackError
 from xstack.imaging import kernels
-from xstack.imaging.fitsio import celestial_wcs, make_header, write_image
+from xstack.imaging.fitsio import (
+    PBCOR_KEY,
+    PBCUT_KEY,
+    PBFILE_KEY,
+    celestial_wcs,
+    make_header,
+    pb_path_for,
+    write_image,
+)
 
-PARALLEL_HANDS = ("XX", "YY", "RR", "LL", "I")
 WEIGHTINGS = ("natural", "uniform", "briggs")
 _ARCSEC = math.pi / (180.0 * 3600.0)
 
@@ -52,7 +60,8 @@ class ImageResult:
     ----------
     image
         (ny, nx) float64, Jy/beam, FITS order [y, x] (RA increasing to the left). Primary-beam
-        corrected (NaN below the beam cutoff) when ``pbcor`` was asked for.
+        corrected (NaN below the beam cutoff) when ``pbcor`` was asked for, and always for a
+        mosaic; the header's ``XSPBCOR`` says which.
     psf
         (ny, nx) float64, peak 1 at (ny // 2, nx // 2).
     wcs
@@ -65,6 +74,11 @@ class ImageResult:
         Sum of imaging weights over every gridded visibility (normalisation).
     frequency
         Weighted mean frequency, Hz (the FREQ axis value).
+    pb
+        (ny, nx) the image's primary beam A (peak 1, dimensionless): the model beam's main
+        lobe at ``frequency`` (single pointing) or the normalised effective beam of a linear
+        mosaic. It travels with the image as ``X.pb.fits`` (:meth:`write_with_pb`), named in
+        the header (``XSPBFILE``); corrected image = uncorrected image / pb.
     """
 
     image: np.ndarray
@@ -86,18 +100,50 @@ class ImageResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def header_for(self, kind: str = "image") -> fits.Header:
-        """FITS header for ``kind`` in image | residual | psf | model | pb."""
+        """FITS header for ``kind`` in image | residual | psf | model | pb.
+
+        ``XSPBCOR`` is the image's own statement: as imaged for ``image``, False for the
+        residual and the CLEAN model (never corrected); absent for the PSF and the beam.
+        """
         h = self.header.copy()
         h["BUNIT"] = {"image": "Jy/beam", "residual": "Jy/beam", "psf": "", "model": "Jy/pixel",
                       "pb": ""}[kind]
         h["XSIMTYPE"] = kind
+        if kind in ("residual", "model"):
+            h[PBCOR_KEY] = False
+        elif kind in ("psf", "pb"):
+            h.remove(PBCOR_KEY, ignore_missing=True)
+            h.remove(PBFILE_KEY, ignore_missing=True)
         return h
 
     def write(self, path: str | os.PathLike, data: np.ndarray | None = None, kind: str = "image",
-              overwrite: bool = False) -> Path:
-        """Write ``data`` (default: the image) as a FITS file with this result's header."""
-        return write_image(path, self.image if data is None else data, self.header_for(kind),
-                           overwrite=overwrite)
+              overwrite: bool = False, pb_file: str | None = None) -> Path:
+        """Write ``data`` (default: the image) as a FITS file with this result's header.
+
+        ``pb_file``: name (beside ``path``) of the primary-beam file to record as ``XSPBFILE``.
+        """
+        h = self.header_for(kind)
+        if pb_file:
+            h[PBFILE_KEY] = (str(pb_file), "primary beam of this image (beside it)")
+        return write_image(path, self.image if data is None else data, h, overwrite=overwrite)
+
+    def write_with_pb(self, path: str | os.PathLike, data: np.ndarray | None = None,
+                      kind: str = "image", overwrite: bool = False) -> dict[str, Path]:
+        """Write the image and, beside it, its primary beam ``X.pb.fits`` (named in the header).
+
+        The beam is written first, the image last (each atomically), so an image never names
+        a beam file that is not there. Returns ``{"image": path, "pb": pb_path}``.
+        """
+        from xstack._atomic import check_output
+
+        if self.pb is None:
+            raise XstackError("this image has no primary beam to write")
+        pb_path = pb_path_for(path)
+        for p in (pb_path, Path(path)):  # refuse before writing either
+            check_output(p, overwrite)
+        self.write(pb_path, self.pb, kind="pb", overwrite=overwrite)
+        out = self.write(path, data, kind=kind, overwrite=overwrite, pb_file=pb_path.name)
+        return {"image": out, "pb": pb_path}
 
 
 # --------------------------------------------------------------------------- selection
@@ -379,14 +425,17 @@ class Imager:
                  weighting: str = "natural", robust: float = 0.0, wterm: bool = True,
                  epsilon: float = 1e-6, partitions: str | Sequence[str] | None = None,
                  nthreads: int = 0, progress: bool = False,
-                 image_center: tuple[float, float] | None = None) -> None:
+                 image_center: tuple[float, float] | None = None,
+                 autocorrelations: bool = False) -> None:
         if weighting not in WEIGHTINGS:
             raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
         if not (1e-12 < epsilon < 0.1):
             raise XstackError(f"gridder epsilon must be in (1e-12, 0.1), got {epsilon}")
         self.ny, self.nx, self.cell = _check_grid(size, cell_arcsec)
         self.cell_arcsec = float(cell_arcsec)
-        self.parts = select_partitions(data, partitions)
+        # autocorrelations measure system power, not the sky: flagged unless asked for
+        self.parts = [(name, sky_correlations(ds, autocorrelations))
+                      for name, ds in select_partitions(data, partitions)]
         self.pols = {name: _parallel_hands(ds, name) for name, ds in self.parts}
         self.weighting, self.robust = weighting, float(robust)
         self.wterm, self.epsilon, self.nthreads = bool(wterm), float(epsilon), int(nthreads)
@@ -508,8 +557,11 @@ class Imager:
             out += grid_visibilities(uvw, freq, vis, w, self.ny, self.nx, self.cell, **kw)
         return out / self.sum_weights
 
-    def primary_beam(self, frequency: float) -> tuple[np.ndarray, float]:
-        """Primary-beam power pattern on the image grid at ``frequency`` and its cutoff."""
+    def primary_beam(self, frequency: float, main_lobe: bool = False) -> tuple[np.ndarray, float]:
+        """Primary-beam power pattern on the image grid at ``frequency`` and its cutoff.
+
+        ``main_lobe``: 0 beyond the first null (the attenuation a correction divides by).
+        """
         from xstack.beams import standard_beam
 
         ds = self.parts[0][1]
@@ -524,6 +576,8 @@ class Imager:
             theta = angular_separation(ra, dec, *self.data_center)
         else:
             theta = np.arcsin(np.clip(np.hypot(l, m), 0.0, 1.0))
+        if main_lobe:
+            return beam.main_lobe(theta, frequency), beam.cutoff
         return beam(theta, frequency), beam.cutoff
 
     def result(self, image: np.ndarray, psf: np.ndarray, stats: dict[str, Any],
@@ -538,12 +592,13 @@ class Imager:
                              telescope=telescope,
                              extra={"XSWEIGHT": self.weighting, "XSROBUST": self.robust,
                                     "XSSUMW": stats["sum_weights"], "XSWTERM": self.wterm,
-                                    "XSEPSIL": self.epsilon, "XSPBCOR": bool(pbcor)})
-        pb = None
+                                    "XSEPSIL": self.epsilon, PBCOR_KEY: bool(pbcor)})
         extra: dict[str, Any] = {}
+        # the beam travels with every image (OUT.pb.fits), corrected or not
+        pb, cutoff = self.primary_beam(stats["frequency"], main_lobe=True)
+        header[PBCUT_KEY] = (float(cutoff), "primary-beam cutoff (coverage: pb >= cutoff)")
         if pbcor:
             extra["uncorrected"] = image
-            pb, cutoff = self.primary_beam(stats["frequency"])
             image = np.where(pb >= max(cutoff, 1e-6), image / np.where(pb > 0, pb, 1.0), np.nan)
         return ImageResult(
             image=image, psf=psf, wcs=celestial_wcs(header), beam=beam, header=header,
@@ -646,16 +701,25 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
         I = sum_p W_p A_p D_p / sum_p W_p A_p^2
 
     (the minimum-variance combination; W_p is equal for equal pointings, giving
-    sum A_p D_p / sum A_p^2). Pixels where no pointing's beam reaches ``pb_cutoff`` are NaN.
+    sum A_p D_p / sum A_p^2). Its variance is 1 / sum W_p A_p^2 and a source of flux S shows
+    S (sum W_p A_p A_p S / sum W_p A_p^2 = S). The **effective beam** is
+
+        pb = sqrt(sum_p W_p A_p^2) / max_pixels sqrt(sum_p W_p A_p^2)      (peak 1)
+
+    so the noise of the corrected mosaic is sigma_flat / pb, with sigma_flat = the noise of
+    the flat-noise (uncorrected) image I * pb, uniform over the mosaic, and pb^2 is the
+    inverse-variance weight of the corrected flux. Pixels where pb < ``pb_cutoff`` are NaN
+    (the coverage every stage uses: a position is inside the mosaic where pb >= cutoff).
 
     Returns
     -------
     ImageResult
-        ``image``: the mosaic, Jy/beam, PB-corrected. ``pb``: the effective beam
-        sqrt(sum W_p A_p^2 / sum W_p): the noise at a pixel is the joint natural noise
-        divided by it. ``psf``: the noise-weighted mean of the pointings' PSFs (all pointings
-        of one observation share nearly the same uv coverage). ``extra``: ``uncorrected``
-        (the flat-noise image sum W_p A_p D_p / sqrt(sum W_p sum W_p A_p^2)), ``pointings``.
+        ``image``: the mosaic, Jy/beam, PB-corrected (``XSPBCOR = T``). ``pb``: the effective
+        beam above (``XSPBNORM`` in the header is its normalisation: the absolute effective
+        beam sqrt(sum W_p A_p^2 / sum W_p) is pb * XSPBNORM). ``psf``: the noise-weighted
+        mean of the pointings' PSFs (all pointings of one observation share nearly the same
+        uv coverage). ``extra``: ``uncorrected`` (the flat-noise image ``image * pb``, 0 where
+        no pointing contributes), ``pointings``.
     """
     parts = select_partitions(data, partitions, allow_mosaic=True)
     groups = group_pointings(parts)
@@ -666,7 +730,6 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
     total_w = sum_w = sum_wf = 0.0
     nvis = 0
     fmin, fmax = np.inf, -np.inf
-    best = None
     cutoff = pb_cutoff
     pointings = []
     imager = None
@@ -685,11 +748,9 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
         w_p = 1.0 / st["noise_variance"] if st["noise_variance"] > 0 else st["sum_weights"]
         if num is None:
             num, den, psf = np.zeros_like(a_p), np.zeros_like(a_p), np.zeros_like(a_p)
-            best = np.zeros_like(a_p)
         num += w_p * a_p * st["dirty"]
         den += w_p * a_p * a_p
         psf += w_p * st["psf"]
-        best = np.maximum(best, a_p)
         total_w += w_p
         sum_w += st["sum_weights"]
         sum_wf += st["frequency"] * st["sum_weights"]
@@ -700,19 +761,25 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
     if num is None or imager is None:
         raise XstackError("no unflagged parallel-hand visibilities with positive weight to image")
     cutoff = max(float(cutoff), 1e-6)
-    good = (best >= cutoff) & (den > 0)
+    pb_abs = np.sqrt(den / total_w)
+    pb_norm = float(pb_abs.max())
+    if not pb_norm > 0:
+        raise XstackError("no pointing's primary beam covers the mosaic grid")
+    pb = pb_abs / pb_norm
+    good = (pb >= cutoff) & (den > 0)
     image = np.where(good, num / np.where(den > 0, den, 1.0), np.nan)
-    pb = np.sqrt(den / total_w)
-    flat = np.where(den > 0, num / np.sqrt(total_w * np.where(den > 0, den, 1.0)), 0.0)
+    # the flat-noise image: corrected mosaic times the effective beam (uniform noise)
+    flat = np.where(den > 0, num / np.where(den > 0, den, 1.0) * pb, 0.0)
     stats = {"frequency": sum_wf / sum_w, "sum_weights": sum_w, "n_visibilities": nvis,
              "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0}
     psf = psf / total_w
     # the header and beam come from the last imager (same grid and centre for every pointing)
     imager.parts = parts
     res = imager.result(image, psf, stats, pbcor=False)
-    res.header["XSPBCOR"] = True
+    res.header[PBCOR_KEY] = True
     res.header["XSMOSAIC"] = (len(pointings), "linear mosaic of this many pointings")
-    res.header["XSPBCUT"] = cutoff
+    res.header[PBCUT_KEY] = (cutoff, "primary-beam cutoff (coverage: pb >= cutoff)")
+    res.header["XSPBNORM"] = (pb_norm, "absolute effective beam = pb * XSPBNORM")
     res.pb = pb
     res.partitions = tuple(n for n, _ in parts)
     res.extra.update({"uncorrected": flat, "pointings": pointings, "pb_cutoff": cutoff})

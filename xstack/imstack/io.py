@@ -187,6 +187,9 @@ def read_image(source: str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | Ima
             psf = np.asarray(psf)
             psf = psf.reshape((1,) * max(naxis - 2, 0) + psf.shape[-2:])
             info.extra["psf"] = fits.PrimaryHDU(psf, header=header)
+        pb = getattr(source, "pb", None)
+        if pb is not None and np.shape(pb) == info.shape:
+            info.extra["pb"] = np.asarray(pb, dtype=np.float64)  # the beam travels with it
         return info
     path = Path(source)
     label = name or str(path)
@@ -265,3 +268,182 @@ def read_stack_fits(path: str | os.PathLike) -> dict[str, Any]:
     return {"stamp": stamp, "psf": psf, "weights": wts, "header": header,
             "pixel_arcsec": (float(scales[0]), float(scales[1])),
             "centre": (int(round(header["CRPIX2"])) - 1, int(round(header["CRPIX1"])) - 1)}
+
+
+# ---------------------------------------------------------------------------------------------
+# the primary-beam convention of an image (docs/conventions.md, "Primary beams and images")
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class BeamConvention:
+    """What an image says about its primary beam, and where the beam comes from.
+
+    Attributes
+    ----------
+    corrected
+        The image is primary-beam corrected (used as is); False: divide by A.
+    corrected_from
+        ``"header"`` (``XSPBCOR``), ``"option"`` (the caller said so) or ``"assumed"`` (the
+        image says nothing: used as is).
+    beam_from
+        Where A comes from: ``"option: ..."``, ``"beam file ..."``, ``"in-memory beam"``,
+        ``"model ... centred on (ra, dec)"``, ``"none (A = 1)"`` or ``"unknown"``.
+    cutoff
+        Positions with A < cutoff (or A = 0) are outside the image.
+    values
+        ``values(ra_deg, dec_deg) -> A`` (dimensionless, 0 off the beam image), or None if no
+        beam is known (then ``missing`` says why).
+    """
+
+    corrected: bool
+    corrected_from: str
+    beam_from: str
+    cutoff: float
+    values: Any = None
+    missing: str = ""
+    from_image: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly summary (what the results record)."""
+        return {"image_corrected": bool(self.corrected), "corrected_from": self.corrected_from,
+                "beam": self.beam_from, "cutoff": float(self.cutoff)}
+
+
+def beam_image_values(beam: np.ndarray, wcs: WCS, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
+    """A primary-beam image sampled at the nearest pixel of each (ra, dec) deg; 0 off the image."""
+    px, py = wcs.world_to_pixel_values(np.asarray(ra, np.float64), np.asarray(dec, np.float64))
+    px = np.nan_to_num(np.asarray(px, np.float64), nan=-1e9)
+    py = np.nan_to_num(np.asarray(py, np.float64), nan=-1e9)
+    ix, iy = np.floor(px + 0.5).astype(np.int64), np.floor(py + 0.5).astype(np.int64)
+    ny, nx = beam.shape
+    ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+    out = np.zeros(np.shape(ra), dtype=np.float64)
+    out[ok] = beam[iy[ok], ix[ok]]
+    return np.nan_to_num(out, nan=0.0)
+
+
+def _model_beam(info: ImageInfo, pb: Any) -> tuple[Any, str]:
+    """(PrimaryBeam or None, why not) for a model name / PrimaryBeam / None (TELESCOP default)."""
+    from xstack.beams import PrimaryBeam, standard_beam
+
+    tel = (info.telescope or "").upper()
+    if isinstance(pb, PrimaryBeam):
+        return pb, ""
+    if pb is None:
+        if tel not in DISH_DIAMETERS:
+            return None, (f"{info.name}: no primary beam known (TELESCOP {info.telescope!r}, "
+                          f"frequency {info.frequency_hz}); give pb= / --pb")
+        return standard_beam(tel, DISH_DIAMETERS[tel]), ""
+    if tel not in DISH_DIAMETERS:
+        raise XstackError(f"{info.name}: primary beam {pb!r} needs a known TELESCOP "
+                          f"(got {info.telescope!r}); give a PB FITS image instead")
+    return standard_beam(tel, DISH_DIAMETERS[tel], model=pb), ""
+
+
+def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = None, *,
+               cutoff: float | None = None,
+               how_to_state: str = "--image-corrected yes|no (image_corrected=)") -> BeamConvention:
+    """The primary-beam convention of ``info`` and the beam A to use with it.
+
+    The convention is the image's own statement (``XSPBCOR``) unless ``image_corrected``
+    says otherwise (it wins; a disagreement is warned about). An image that says nothing is
+    used as is (as if corrected), with a one-line warning naming ``how_to_state``.
+
+    The beam, in order: ``pb`` (a :class:`~xstack.beams.PrimaryBeam`, a model name ``airy``,
+    ``gaussian``, ``vla``, ``none``, a PB FITS image, or an array on the image grid) wins;
+    else the beam file named by ``XSPBFILE`` beside the image; else the beam of an in-memory
+    ``ImageResult``; else the telescope's standard beam (TELESCOP, the image frequency)
+    centred on the pointing (OBSRA/OBSDEC or the reference position) -- except for a mosaic
+    (``XSMOSAIC`` > 1), whose beam is not that of one pointing.
+    """
+    from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam
+    from xstack.coords import angular_separation
+    from xstack.imaging.fitsio import PBCUT_KEY, pb_corrected_from_header, pb_file_from_header
+
+    header = info.header
+    said = pb_corrected_from_header(header)
+    if isinstance(pb, str) and pb == "none":
+        pb_none = True
+    else:
+        pb_none = isinstance(pb, PrimaryBeam) and pb.model == "none"
+    if image_corrected is not None:
+        corrected, corrected_from = bool(image_corrected), "option"
+        if said is not None and said != corrected:
+            warnings.warn(f"{info.name}: its header says XSPBCOR = {'T' if said else 'F'} but it "
+                          f"is treated as {'' if corrected else 'not '}primary-beam corrected "
+                          "as asked (image_corrected / --image-corrected)", stacklevel=3)
+    elif said is not None:
+        corrected, corrected_from = said, "header"
+    else:
+        corrected, corrected_from = True, "assumed"
+        if not pb_none:
+            warnings.warn(f"{info.name}: the header does not say whether the image is primary-"
+                          "beam corrected (no XSPBCOR): used as is, as if corrected; if it is "
+                          f"not, state it with {how_to_state}", stacklevel=3)
+    if cutoff is None:
+        cutoff = float(header.get(PBCUT_KEY, DEFAULT_PB_CUTOFF))
+    conv = BeamConvention(corrected, corrected_from, "unknown", float(cutoff))
+
+    def from_array(beam: np.ndarray, wcs: WCS, label: str) -> None:
+        beam = np.asarray(beam, dtype=np.float64)
+        conv.values = lambda ra, dec: beam_image_values(beam, wcs, ra, dec)
+        conv.beam_from, conv.from_image = label, True
+
+    def from_model(model: PrimaryBeam, label: str) -> None:
+        if info.frequency_hz is None:
+            conv.missing = (f"{info.name}: no frequency in the header for the primary beam; "
+                            "give a PB FITS image instead")
+            return
+        r0, d0 = np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1])
+        freq = float(info.frequency_hz)
+        conv.values = lambda ra, dec: np.asarray(model.main_lobe(angular_separation(
+            np.radians(ra), np.radians(dec), r0, d0), freq), dtype=np.float64)
+        conv.beam_from = (f"{label}: {model.model} beam ({model.dish_diameter:g} m) at "
+                          f"{freq / 1e9:.6g} GHz centred on ({info.pointing_deg[0]:.6f}, "
+                          f"{info.pointing_deg[1]:.6f}) deg")
+
+    if pb_none:
+        conv.values = lambda ra, dec: np.ones(np.shape(ra))
+        conv.beam_from = "none (A = 1)"
+        return conv
+    if pb is not None:
+        if isinstance(pb, (str, os.PathLike)) and not (isinstance(pb, str) and pb in (
+                "airy", "gaussian", "vla")):
+            pbimg = read_image(pb, name=f"primary beam {pb}")
+            from_array(pbimg.data, pbimg.wcs, f"option: beam image {pb}")
+        elif isinstance(pb, np.ndarray):
+            if pb.shape != info.shape:
+                raise XstackError(f"{info.name}: the primary-beam array has shape {pb.shape}, "
+                                  f"the image {info.shape}")
+            from_array(pb, info.wcs, "option: beam array on the image grid")
+        else:
+            model, why = _model_beam(info, pb)
+            if isinstance(pb, PrimaryBeam):
+                conv.cutoff = float(pb.cutoff)
+            from_model(model, "option")
+        return conv
+    pb_file = pb_file_from_header(header, info.path)
+    if pb_file is not None and info.path is not None:
+        if not pb_file.exists():
+            conv.missing = (f"{info.name}: its primary beam {pb_file} (XSPBFILE) is missing; keep "
+                            "it beside the image or give the beam with pb= / --pb")
+            return conv
+        pbimg = read_image(pb_file, name=f"primary beam {pb_file}")
+        if pbimg.shape != info.shape:
+            raise XstackError(f"{pb_file}: primary beam of shape {pbimg.shape} for an image of "
+                              f"shape {info.shape}")
+        from_array(pbimg.data, pbimg.wcs, f"beam file {pb_file.name}")
+        return conv
+    if "pb" in info.extra:
+        from_array(info.extra["pb"], info.wcs, "in-memory beam of the image")
+        return conv
+    if int(header.get("XSMOSAIC", 1) or 1) > 1:
+        conv.missing = (f"{info.name}: a mosaic whose effective primary beam is not given (no "
+                        "XSPBFILE); give its beam image (OUT.pb.fits) with pb= / --pb")
+        return conv
+    model, why = _model_beam(info, None)
+    if model is None:
+        conv.missing = why
+        return conv
+    from_model(model, "model")
+    return conv

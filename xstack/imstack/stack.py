@@ -22,13 +22,13 @@ from astropy.table import Table
 from xstack import __version__
 from xstack._atomic import atomic_output, check_output
 from xstack._progress import progress_iter
-from xstack.beams import PrimaryBeam, standard_beam
-from xstack.coords import angular_separation, parse_distance, read_catalog
+from xstack.coords import parse_distance, read_catalog
 from xstack.errors import XstackError
 from xstack.imstack import kernels
 from xstack.imstack.io import (
-    DISH_DIAMETERS,
+    BeamConvention,
     ImageInfo,
+    image_beam,
     output_paths,
     psf_path_for,
     read_image,
@@ -62,6 +62,10 @@ class ImstackResult:
         image, 0 where the position was not stacked from that image.
     stacked
         The stacked stamp, ``xr.DataArray`` (y, x), Jy/beam.
+    primary_beam
+        Per image: the convention used (``image_corrected``, ``corrected_from`` header /
+        option / assumed), where the beam came from (``beam``) and its ``cutoff``. The stack
+        always measures primary-beam corrected fluxes (docs/conventions.md).
     flux_jy
         Value of the stacked stamp at its central pixel (the stacking position) -- the paper's
         "peak" for point sources, without the upward bias of taking a noisy maximum. With
@@ -101,6 +105,7 @@ class ImstackResult:
     filter_lowfreq: Any = None
     skipped_rows: list[int] = field(default_factory=list)
     outputs: dict[str, str] = field(default_factory=dict)
+    primary_beam: list[dict[str, Any]] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly summary (what ``xstack imstack --json`` prints)."""
@@ -126,6 +131,8 @@ class ImstackResult:
             "filter_lowfreq": self.filter_lowfreq,
             "skipped_rows": list(self.skipped_rows),
             "outputs": dict(self.outputs),
+            "flux_convention": "primary-beam corrected",
+            "primary_beam": [dict(p) for p in self.primary_beam],
         }
 
 
@@ -155,40 +162,6 @@ def _as_list(value: Any, n: int, what: str) -> list[Any]:
             raise XstackError(f"{what}: got {len(value)} entries for {n} images")
         return list(value)
     return [value] * n
-
-
-def _primary_beam_values(info: ImageInfo, pb: Any, ra: np.ndarray, dec: np.ndarray) -> np.ndarray | None:
-    """Primary-beam attenuation of ``info``'s pointing at the positions, or None if unknown."""
-    if pb is None:
-        tel = (info.telescope or "").upper()
-        if tel not in DISH_DIAMETERS or info.frequency_hz is None:
-            return None
-        pb = standard_beam(tel, DISH_DIAMETERS[tel])
-    if isinstance(pb, str) and pb in ("airy", "gaussian", "vla", "none"):
-        tel = (info.telescope or "").upper()
-        if pb == "none":
-            return np.ones_like(ra)
-        if tel not in DISH_DIAMETERS:
-            raise XstackError(f"{info.name}: primary beam {pb!r} needs a known TELESCOP "
-                              f"(got {info.telescope!r}); give a PB FITS image instead")
-        pb = standard_beam(tel, DISH_DIAMETERS[tel], model=pb)
-    if isinstance(pb, PrimaryBeam):
-        if info.frequency_hz is None:
-            raise XstackError(f"{info.name}: no frequency in the header for the primary beam; "
-                              "give a PB FITS image instead")
-        theta = angular_separation(np.radians(ra), np.radians(dec),
-                                   np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1]))
-        return pb.main_lobe(theta, info.frequency_hz)
-    # a primary-beam image: nearest pixel at each position, 0 off the image
-    pbimg = read_image(pb, name=f"primary beam {pb}")
-    px, py = pbimg.wcs.world_to_pixel_values(ra, dec)
-    ix, iy = kernels.nearest_pixel(np.nan_to_num(px, nan=-1e9)), kernels.nearest_pixel(
-        np.nan_to_num(py, nan=-1e9))
-    ny, nx = pbimg.shape
-    ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-    out = np.zeros(ra.size)
-    out[ok] = pbimg.data[iy[ok], ix[ok]]
-    return np.nan_to_num(out, nan=0.0)
 
 
 def _check_grids(infos: list[ImageInfo]) -> np.ndarray:
@@ -238,6 +211,7 @@ def _mean_position(ra: np.ndarray, dec: np.ndarray, w: np.ndarray) -> tuple[floa
 def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stamp_size: int = 64,
             method: str = "mean", weighting: str = "sigma2", subpixel: str | bool = False,
             pb: Any = None, pbcor: bool = False, psf: Any = None,
+            image_corrected: bool | None | Sequence[bool | None] = None,
             beam_mask_arcsec: float | None = None, filter_lowfreq: int | str | None = None,
             skip_outside: bool = False, out: str | os.PathLike | None = None,
             cube_format: str = "zarr", plot: bool = True, overwrite: bool = False,
@@ -262,20 +236,27 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     weighting
         ``"sigma2"``: W_k = 1/sigma_k^2, sigma_k the std of the stamp outside a central
         circle of radius ``beam_mask_arcsec`` (default: the beam's major axis BMAJ), paper
-        eq. 3. ``"pb"``: sigma_k = 1/A(position), W_k = A^2 (the paper's ALMA weights).
+        eq. 3. ``"pb"``: W_k = A^2 (the inverse variance of the corrected flux, the paper's
+        ALMA weights), for corrected and uncorrected images alike.
         ``"none"``: W_k = 1. ``"column"``: the catalog's ``weight`` column.
     subpixel
         ``False`` (nearest pixel, as in the paper), ``"fourier"`` or ``"spline"`` (shift each
         stamp so the position is exactly at the centre; removes the pixelisation loss).
     pb
-        Primary beam for ``weighting="pb"`` and ``pbcor``: a :class:`~xstack.beams.PrimaryBeam`,
-        a model name, a PB FITS image, or a list with one per image. Default: the telescope's
+        Primary beam A: a :class:`~xstack.beams.PrimaryBeam`, a model name, a PB FITS image,
+        an array on the image grid, or a list with one per image. It wins over the image's
+        own beam. Default: the beam file named by the header (``XSPBFILE``, written by
+        ``xstack image`` as ``X.pb.fits``; a mosaic's effective beam), else the telescope's
         standard beam from TELESCOP and the image frequency, centred on OBSRA/OBSDEC or the
-        WCS reference position. Positions where A < the beam's cutoff are not stacked from
-        that image.
+        WCS reference position (never for a mosaic). Positions where A < the cutoff (the
+        header's ``XSPBCUT``, the PrimaryBeam's, else 0.1) are not stacked from that image.
+    image_corrected
+        Whether the image is primary-beam corrected (one, or one per image); default: the
+        header's ``XSPBCOR``; an image that says nothing is used as is, with a warning. The
+        stack always measures corrected fluxes: an uncorrected image's stamps are divided by
+        A(position), a corrected image is used as is (docs/conventions.md).
     pbcor
-        Divide each stamp by A(position): for images that are not primary-beam corrected
-        (e.g. single mosaic pointings), so the stack estimates the true flux density.
+        ``True`` is the older spelling of ``image_corrected=False`` (divide each stamp by A).
     psf
         PSF image(s) (FITS path/HDU, one or one per image). Default: ``X.psf.fits`` beside
         ``X.fits`` where it exists.
@@ -334,6 +315,12 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         for p in paths.values():
             check_output(p, overwrite)
 
+    if pbcor:
+        if image_corrected is True or (isinstance(image_corrected, (list, tuple))
+                                       and any(c is True for c in image_corrected)):
+            raise XstackError("pbcor=True (divide by the beam) contradicts image_corrected=True")
+        image_corrected = False
+
     # ---- inputs -----------------------------------------------------------------------------
     ra, dec, cat_w = _positions(positions)
     if weighting == "column" and cat_w is None:
@@ -361,6 +348,11 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     rho = float(np.degrees(np.arctan2(pixm[0, 1], pixm[1, 1])))
     beam = next((i.beam_arcsec for i in infos if i.beam_arcsec), None)
     pbs = _as_list(pb, len(infos), "pb")
+    corr = _as_list(image_corrected, len(infos), "image_corrected")
+    convs: list[BeamConvention] = [
+        image_beam(info, pbs[i], corr[i],
+                   how_to_state="--image-corrected yes|no (image_corrected=True/False)")
+        for i, info in enumerate(infos)]
     psfs = _as_list(psf, len(infos), "psf")
     fmask = _filter_mask(filter_lowfreq, stamp_size, pix_x, pix_y, infos[0].frequency_hz)
 
@@ -378,13 +370,14 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         ix, iy = kernels.nearest_pixel(np.where(inside, px, 0)), kernels.nearest_pixel(
             np.where(inside, py, 0))
         inside &= np.isfinite(info.data[iy, ix])  # blanked centre: not covered by this image
-        if weighting == "pb" or pbcor:
-            a = _primary_beam_values(info, pbs[i], ra, dec)
-            if a is None:
-                raise XstackError(f"{info.name}: no primary beam known (TELESCOP "
-                                  f"{info.telescope!r}, frequency {info.frequency_hz}); give pb=")
-            cutoff = pbs[i].cutoff if isinstance(pbs[i], PrimaryBeam) else 0.1
-            inside &= (a >= cutoff) & (a > 0)  # A = 0 (beyond the null) even at cutoff 0
+        conv = convs[i]
+        # A is needed for pb weights and to correct an uncorrected image; a beam that travels
+        # with the image (file, array, option) also defines its coverage (A >= cutoff)
+        if weighting == "pb" or not conv.corrected or conv.from_image:
+            if conv.values is None:
+                raise XstackError(conv.missing or f"{info.name}: no primary beam known; give pb=")
+            a = np.asarray(conv.values(ra, dec), dtype=np.float64)
+            inside &= (a >= conv.cutoff) & (a > 0)  # A = 0 (beyond the null) even at cutoff 0
             atten[:, i] = a
         seen[:, i] = inside
         pix[:, i, 0], pix[:, i, 1] = px, py
@@ -404,7 +397,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
             continue
         st, fx, fy = kernels.align_stamps(infos[i].data, pix[rows, i, 0], pix[rows, i, 1],
                                           stamp_size, subpixel)
-        if pbcor:
+        if not convs[i].corrected:
             st /= atten[rows, i][:, None, None]
         blocks.append(st)
         meta.append((rows, np.full(rows.size, i), fx, fy))
@@ -517,7 +510,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         stamp_rms_jy=stamp_rms, peak_jy=peak, method=method, weighting=weighting,
         subpixel=subpixel, beam_arcsec=beam, mask_radius_arcsec=radius, pixel_arcsec=(pix_x, pix_y),
         pixelisation_factor=pixfac, filter_lowfreq=filter_lowfreq,
-        skipped_rows=[int(k) + 1 for k in unseen])
+        skipped_rows=[int(k) + 1 for k in unseen],
+        primary_beam=[dict(c.to_dict(), image=info.name) for c, info in zip(convs, infos)])
     if paths is not None:
         ra0, dec0 = _mean_position(ra[rows], dec[rows], np.where(w > 0, w, 0) / np.sum(w))
         _write_outputs(result, paths, pixm, ra0, dec0, overwrite)
@@ -605,6 +599,9 @@ def _header_cards(result: ImstackResult) -> list[tuple[str, Any, str]]:
         ("STMASKR", f(result.mask_radius_arcsec), "[arcsec] radius of the central mask"),
         ("STPIXFAC", f(result.pixelisation_factor), "expected nearest-pixel peak factor (Gauss)"),
         ("STFILTER", str(result.filter_lowfreq), "low-spatial-frequency FFT filter"),
+        ("STPBCOR", True, "stacked flux is primary-beam corrected"),
+        ("STPBFROM", ",".join(sorted({str(p.get("corrected_from")) for p in result.primary_beam}))
+         or "none", "convention from: header, option, assumed"),
         ("ORIGIN", f"xstack {__version__}", ""),
     ]
 

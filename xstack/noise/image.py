@@ -1,11 +1,15 @@
 """Image-domain noise and bias of a stack: the same four methods on a (residual) image.
 
-The image-stacking estimator used here is the weighted mean of the pixel values at the
-positions (nearest pixel), each divided by the primary-beam attenuation A_k when a beam is
-used: F = sum_k w_k I(x_k) / A_k / sum_k w_k (``xstack imstack --method mean`` without
-sub-pixel alignment). Monte Carlo injection is analytic, as in the uv-domain: a fake source
-j of flux S_j adds S_j A_j PSF(x - x_j) to the image (PSF peak 1, same pixel grid), so the
-stack of realisation r gains sum_k w_k sum_{j in r} S_j A_j PSF(x_k - x_j) / A_k / sum w.
+The image-stacking estimator used here measures primary-beam corrected fluxes, like
+``xstack imstack`` (one convention, docs/conventions.md): the weighted mean of the pixel
+values at the positions (nearest pixel), each divided by the primary-beam attenuation A_k
+when the image is not corrected, used as is when it is: F = sum_k w_k I_c(x_k) / sum_k w_k
+with I_c = I / A (uncorrected image I) or the corrected image itself. Whether the image is
+corrected is read from its header (``XSPBCOR``) and A from the beam file it names
+(``XSPBFILE``: a mosaic's effective beam) unless ``primary_beam`` / ``image_corrected`` say
+otherwise. Monte Carlo injection is analytic, as in the uv-domain: a fake source j of flux
+S_j adds S_j A_j PSF(x - x_j) to the uncorrected image (PSF peak 1, same pixel grid), so the
+corrected value at x_k gains sum_j S_j A_j PSF(x_k - x_j) / A_k.
 """
 
 from __future__ import annotations
@@ -17,29 +21,21 @@ import numpy as np
 from xstack.errors import XstackError
 
 
-def _beam_values(info: Any, primary_beam: Any, cutoff: float):
-    from xstack.beams import PrimaryBeam, standard_beam
-
-    if primary_beam in (None, "none"):
-        return None
-    if isinstance(primary_beam, PrimaryBeam):
-        return primary_beam
-    tel = (info.telescope or "").strip()
-    if not tel or info.frequency_hz is None:
-        raise XstackError(f"{info.name}: primary beam {primary_beam!r} needs TELESCOP and a "
-                          "frequency in the image header (or primary_beam='none')")
-    dish = {"ALMA": 12.0, "VLA": 25.0, "EVLA": 25.0, "JVLA": 25.0}.get(tel.upper(), 25.0)
-    model = None if primary_beam == "auto" else primary_beam
-    return standard_beam(tel, dish, model=model, cutoff=cutoff)
-
-
 def estimate_noise_image(image: Any, positions: Any, *, method: str, realizations: int,
                          flux: Any, min_separation_arcsec: float | None, avoid: Any, seed: int,
                          weighting: str, primary_beam: Any, pb_cutoff: float,
-                         field_radius_arcsec: float | None, psf: Any = None):
-    """Image-domain counterpart of :func:`xstack.noise.estimate.estimate_noise`."""
+                         field_radius_arcsec: float | None, psf: Any = None,
+                         image_corrected: bool | None = None):
+    """Image-domain counterpart of :func:`xstack.noise.estimate.estimate_noise`.
+
+    ``primary_beam``: ``None``/``"auto"`` (the image's own beam: ``XSPBFILE``, else the
+    telescope's standard beam at its pointing), a model name, ``"none"`` (A = 1), a
+    :class:`~xstack.beams.PrimaryBeam` or a PB FITS image; ``image_corrected``: whether the
+    image is primary-beam corrected (default: its ``XSPBCOR``; an image that says nothing is
+    used as is, with a warning). ``extra["primary_beam"]`` records what was used.
+    """
     from xstack.coords import angular_separation
-    from xstack.imstack.io import psf_path_for, read_image
+    from xstack.imstack.io import image_beam, psf_path_for, read_image
     from xstack.noise.estimate import NoiseResult, _injected_fluxes, _positions_from
     from xstack.noise.positions import ARCSEC, random_positions
 
@@ -47,7 +43,12 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
     img = np.asarray(info.data, dtype=np.float64)
     ny, nx = img.shape
     ra_t, dec_t, cat = _positions_from(positions)
-    beam = _beam_values(info, "auto" if primary_beam is None else primary_beam, pb_cutoff)
+    conv = image_beam(info, None if primary_beam in (None, "auto") else primary_beam,
+                      image_corrected, cutoff=pb_cutoff,
+                      how_to_state="image_corrected=True/False (or XSPBCOR = T/F in its header)")
+    if conv.values is None and (weighting == "pb" or not conv.corrected):
+        raise XstackError(conv.missing or f"{info.name}: no primary beam known; give primary_beam=")
+    beam = conv.values  # (ra_deg, dec_deg) -> A, or None (unknown: A = 1 for a corrected image)
     pra, pdec = np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1])
 
     def pix(ra, dec):
@@ -57,14 +58,19 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
     def atten(ra, dec):
         if beam is None:
             return np.ones(np.shape(ra))
-        return np.asarray(beam(angular_separation(ra, dec, pra, pdec), info.frequency_hz))
+        return np.asarray(beam(np.degrees(ra), np.degrees(dec)), dtype=np.float64)
+
+    def corr(ra, dec):
+        """What a pixel value is divided by to give the corrected flux (1 if corrected)."""
+        return np.ones(np.shape(ra)) if conv.corrected else atten(ra, dec)
 
     def usable(ra, dec):
         iy, ix = pix(ra, dec)
         ok = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
         ok[ok] &= np.isfinite(img[iy[ok], ix[ok]])
         if beam is not None:
-            ok &= atten(ra, dec) >= max(beam.cutoff, 1e-12)
+            a = atten(ra, dec)
+            ok &= (a >= max(conv.cutoff, 1e-12)) & (a > 0)
         return ok
 
     ok_t = usable(ra_t, dec_t)
@@ -84,15 +90,27 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
 
     def stack(ra, dec, w):
         iy, ix = pix(ra, dec)
-        return float(np.sum(w * img[iy, ix] / atten(ra, dec)) / np.sum(w))
+        return float(np.sum(w * img[iy, ix] / corr(ra, dec)) / np.sum(w))
 
     ra_u, dec_u, w_u = ra_t[ok_t], dec_t[ok_t], weights(ra_t[ok_t], dec_t[ok_t], w_base[ok_t])
     target = stack(ra_u, dec_u, w_u)
     n = ra_u.size
     rng = np.random.default_rng(seed)
-    extra: dict[str, Any] = {"weighting": weighting, "image": info.name, "seed": int(seed)}
+    extra: dict[str, Any] = {"weighting": weighting, "image": info.name, "seed": int(seed),
+                             "primary_beam": conv.to_dict()}
     if method == "analytic":
-        finite = img[np.isfinite(img)]
+        # the noise of the flat (uncorrected) image I = I_c A, from the covered pixels
+        flat = img
+        if beam is not None:
+            yy, xx = np.indices(img.shape)
+            wra, wdec = info.wcs.pixel_to_world_values(xx.ravel(), yy.ravel())
+            a_pix = np.asarray(beam(np.asarray(wra), np.asarray(wdec))).reshape(img.shape)
+            flat = np.where(a_pix >= max(conv.cutoff, 1e-12), img, np.nan)
+            if conv.corrected:
+                flat = flat * a_pix
+        finite = flat[np.isfinite(flat)]
+        if finite.size == 0:
+            raise XstackError(f"{info.name}: no finite pixel inside the primary beam")
         sigma_map = float(1.4826 * np.median(np.abs(finite - np.median(finite))))
         sig_k = sigma_map / atten(ra_u, dec_u)
         noise = float(1.0 / np.sqrt(np.sum(1.0 / sig_k**2)))
@@ -131,7 +149,8 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
             c_ra, c_dec = random_positions(n, 1, np.array([[pra, pdec]]), np.array([radius]),
                                            avoid_ra=np.concatenate(av_ra + [got_ra]),
                                            avoid_dec=np.concatenate(av_dec + [got_dec]),
-                                           min_separation=min_sep, rng=rng)
+                                           min_separation=min_sep, rng=rng,
+                                           region="hull", region_targets=(ra_u, dec_u))
             keep = usable(c_ra[0], c_dec[0])
             got_ra = np.concatenate([got_ra, c_ra[0][keep]])[:n]
             got_dec = np.concatenate([got_dec, c_dec[0][keep]])[:n]

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from xstack.errors import XstackError
+from xstack.imaging.fitsio import pb_corrected_from_header
 from xstack.imstack import kernels
 from xstack.imstack.io import ImageInfo, read_image
 
@@ -107,6 +108,10 @@ class LocalNoise:
         The image's label (file name) for messages and provenance.
     pbcor
         ``XSPBCOR`` of an xstack image (True: primary-beam corrected), None if unknown.
+    beam
+        For an image that says it is not corrected: where the primary beam A came from
+        (sigma_k were divided by A_k, so they are the noise of the corrected flux); None
+        when sigma_k are the image's own (a corrected image, or no beam found).
     """
 
     sigma: np.ndarray
@@ -120,6 +125,7 @@ class LocalNoise:
     unit: str
     name: str
     pbcor: bool | None = None
+    beam: str | None = None
 
     def describe_bad(self, rows: np.ndarray | None = None, limit: int = 5) -> str:
         """One-line message naming the (1-based) rows without an estimate, with the reason."""
@@ -135,7 +141,8 @@ class LocalNoise:
         return {"image": self.name, "unit": self.unit, "estimator": self.estimator,
                 "stamp_size": int(self.stamp_size),
                 "mask_radius_arcsec": float(self.mask_radius_arcsec),
-                "min_pixels": int(self.min_pixels), "pbcor": self.pbcor}
+                "min_pixels": int(self.min_pixels), "pbcor": self.pbcor,
+                "divided_by_beam": self.beam}
 
 
 def _positions_deg(positions: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -326,7 +333,26 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
         sigma[sel] = sig
         npix[sel] = nf
 
+    # an image that says it is NOT primary-beam corrected (e.g. the residual of xstack image)
+    # holds the noise of the uncorrected flux: sigma_k / A_k is that of the corrected flux,
+    # with A from the beam that travels with the image (the convention of xstack.imstack.io)
+    pbcor = pb_corrected_from_header(info.header)
+    beam_from = None
+    weak = np.zeros(n, dtype=bool)
+    if pbcor is False:
+        from xstack.imstack.io import image_beam
+
+        conv = image_beam(info)
+        if conv.values is not None:
+            att = np.asarray(conv.values(ra, dec), dtype=np.float64)
+            weak = ~(att >= max(conv.cutoff, 1e-12))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sigma = np.where(weak, np.nan, sigma / att)
+            beam_from = conv.beam_from
+
     reasons: dict[int, str] = {}
+    for k in np.flatnonzero(weak & on_image):
+        reasons[int(k)] = "lies where the image's primary beam is below its cutoff"
     for k in np.flatnonzero(~on_image):
         reasons[int(k)] = f"(ra={ra[k]:.6f}, dec={dec[k]:.6f} deg) is outside the image"
     for k in np.flatnonzero(blanked):
@@ -335,15 +361,14 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
         if npix[k] < min_pixels:
             reasons[int(k)] = (f"has only {npix[k]} finite pixels outside the central mask "
                                f"(need {min_pixels})")
-        elif not sigma[k] > 0:
+        elif not sigma[k] > 0 and not weak[k]:
             reasons[int(k)] = "has constant pixels around it (zero noise)"
     bad = np.array(sorted(reasons), dtype=np.int64)
     sigma[bad] = np.nan
-    pbcor = info.header.get("XSPBCOR")
     return LocalNoise(sigma=sigma, n_pixels=npix, bad_rows=bad, reasons=[reasons[k] for k in bad],
                       stamp_size=size, mask_radius_arcsec=float(radius), min_pixels=min_pixels,
-                      estimator=estimator, unit=bunit, name=info.name,
-                      pbcor=None if pbcor is None else bool(pbcor))
+                      estimator=estimator, unit=bunit, name=info.name, pbcor=pbcor,
+                      beam=beam_from)
 
 
 def local_noise(image: Any, positions: Any, *, stamp_size: int | None = None,

@@ -28,6 +28,8 @@ pointing), a ``spectral`` set-up, ``pointings``, ``effects`` (each opt-in) and a
     w_term = true
     noise = { sigma = 0.01 }        # or { sefd = 420.0 } or { tsys = 90.0 }
     flagging = { random_fraction = 0.0, shadowing = false }
+    bandwidth_smearing = false      # channel average: sinc(pi d dnu / c)
+    time_smearing = false           # integration average (Earth rotation)
 
     [[populations]]
     name = "targets"
@@ -108,6 +110,10 @@ class Effects:
     w_term: bool = False
     noise: NoiseSpec | None = None
     flagging: FlaggingSpec | None = None
+    #: average each visibility over its rectangular channel (``xstack.smearing``)
+    bandwidth_smearing: bool = False
+    #: average each visibility over its integration (Earth rotation, first order)
+    time_smearing: bool = False
 
 
 @dataclass

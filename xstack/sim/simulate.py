@@ -9,6 +9,8 @@ the ones in the graph and :func:`xstack.sim.kernels.record_steps` counts those e
 ``extent``        Gaussian sources (a population with ``shape.kind = "gaussian"``)
 ``primary_beam``  ``effects.primary_beam`` (per channel and pointing, :mod:`xstack.beams`)
 ``noise``         ``effects.noise`` (random numbers are drawn only here and in flagging)
+``bandwidth_smearing``, ``time_smearing``  ``effects.bandwidth_smearing`` / ``time_smearing``
+                  (channel / integration averages, :mod:`xstack.smearing`)
 ``flag_random``, ``flag_shadow``  ``effects.flagging``
 
 Reproducibility: the catalog of population i is drawn from ``SeedSequence(seed,
@@ -32,6 +34,7 @@ import numpy as np
 import xarray as xr
 from astropy.table import Table
 
+from xstack._select import parallel_hand_mask
 from xstack.beams import PrimaryBeam, standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, lm_to_radec, radec_to_lmn
 from xstack.errors import XstackError
@@ -326,6 +329,11 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
             off_centre = (ra != pointings[0, 0]) | (dec != pointings[0, 1])
         if np.any(off_centre & (flux != 0)):
             steps.add("phase")
+            # smearing factors are 1 for sources at the phase centre: only with phases
+            if e.bandwidth_smearing:
+                steps.add("bandwidth_smearing")
+            if e.time_smearing:
+                steps.add("time_smearing")
     if sigma is not None:
         steps.add("noise")
     if e.flagging is not None:
@@ -354,7 +362,7 @@ def _noise_sigma(n: Any, array: arr.AntennaArray, width: np.ndarray, tau: float)
 # ----------------------------------------------------------------------- chunk functions
 
 def _parallel_hands(pols: list[str]) -> np.ndarray:
-    return np.array([p in ("RR", "LL", "XX", "YY") for p in pols])
+    return parallel_hand_mask(pols)
 
 
 def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
@@ -368,7 +376,9 @@ def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None
         # per-antenna phasors: one sincos pair per antenna (not per baseline) and source
         model = kernels.model_visibilities_antenna(
             ant, a1, a2, ctx["freq"], ctx["l"], ctx["m"], ctx["nm1"], ctx["flux"], ctx["att"],
-            ctx["fwhm"] if ctx["extended"].any() else None, parallel=False)
+            ctx["fwhm"] if ctx["extended"].any() else None, parallel=False,
+            channel_width=ctx["smear_width"], integration_time=ctx["smear_time"],
+            dec0=ctx["centre"][1])
         out[..., ctx["parallel"]] = model[..., None]
     sigma = ctx["sigma"]
     if sigma is not None:
@@ -433,6 +443,9 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         "seed": int(seed), "pointing": p, "dtype": dtype,
         "flag_fraction": scene.effects.flagging.random_fraction if scene.effects.flagging else 0.0,
         "shadowing": bool(scene.effects.flagging and scene.effects.flagging.shadowing),
+        "smear_width": plan.width if scene.effects.bandwidth_smearing else None,
+        "smear_time": (float(scene.observation.integration) if scene.effects.time_smearing
+                       else None),
     }
     tc = scene.time_chunk or max(1, CHUNK_BYTES // max(1, nbl * nchan * npol * dtype.itemsize))
     tc = min(tc, nt)
@@ -467,7 +480,10 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         attrs={"source": "xstack simulate", "scene_name": scene.name,
                "simulation_seed": int(seed),
                "noise_sigma_jy": (float(np.mean(plan.sigma)) if plan.sigma is not None
-                                  else 0.0)})
+                                  else 0.0),
+               # which smearing the data carry (uvstack's smearing="auto" reads this)
+               "smearing": {"bandwidth": bool(scene.effects.bandwidth_smearing),
+                            "time": bool(scene.effects.time_smearing)}})
     return ds
 
 

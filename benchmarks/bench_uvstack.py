@@ -101,12 +101,12 @@ def truth_phasor(uvw, freq, l, m, n1, coef):
     return outp
 
 
-def section_end_to_end(n_time: int, n_pos: int, rng) -> dict:
+def type6_data(n_time: int, n_pos: int, rng):
+    """The paper's type-6 layout with unit noise: (dataset, tree, catalog, uvw, a1, a2, ...)."""
     import xarray as xr
     from astropy.table import Table
 
     from xstack.schema import new_partition
-    from xstack.uvstack.stack import uvstack
 
     uvw, arr, a1, a2, t = vla_uvw(n_time)
     nbl = a1.size
@@ -127,6 +127,49 @@ def section_end_to_end(n_time: int, n_pos: int, rng) -> dict:
     out(f"data: {n_time} integrations x {nbl} baselines x 10 channels x 2 pols = {nvis:.3e} "
         f"visibilities ({vis.nbytes / 2**20:.0f} MiB complex64), {n_pos} positions, "
         f"{nbl * n_time * n_pos:.3e} (row, position) pairs")
+    return ds, tree, cat, uvw, a1, a2, freq, ra, dec, nvis
+
+
+def section_empirical(n_time: int, n_pos: int, rng, repeat: int = 3) -> None:
+    """Flux pass with and without the measured-noise sums (``flux_err_empirical_jy``),
+    interleaved in the same run: what measuring the noise in the flux's pass costs."""
+    import xarray as xr
+
+    from xstack.uvstack import stack as S
+
+    ds, tree, cat, *_ = type6_data(n_time, n_pos, rng)
+    small = xr.DataTree.from_dict({"spw0_field0": ds.isel(time=slice(0, 2))})
+    S.uvstack(small, cat)  # JIT warm-up (both paths)
+    S._EMPIRICAL_SUMS = False
+    S.uvstack(small, cat)
+    out("")
+    out("| flux pass (engine auto) | run | wall [s] | CPU [s] | flux_err_jy | "
+        "flux_err_empirical_jy |")
+    out("|---|---|---|---|---|---|")
+    times: dict[bool, list[float]] = {True: [], False: []}
+    cpus: dict[bool, list[float]] = {True: [], False: []}
+    for i in range(repeat):
+        for emp in (False, True):
+            S._EMPIRICAL_SUMS = emp
+            dt, _, res = traced_peak(S.uvstack, tree, cat, weighting="pb")
+            times[emp].append(dt)
+            cpus[emp].append(CPU["last"])
+            label = "with measured noise" if emp else "without (weights only)"
+            out(f"| {label} | {i + 1} | {dt:.2f} | {CPU['last']:.2f} | {res.flux_err_jy:.4g} | "
+                f"{res.flux_err_empirical_jy:.4g} |")
+    S._EMPIRICAL_SUMS = True
+    best = {k: min(v) for k, v in times.items()}
+    out(f"best of {repeat}: {best[False]:.2f} s without, {best[True]:.2f} s with the measured "
+        f"noise (+{100 * (best[True] / best[False] - 1):.0f} %); CPU best "
+        f"{min(cpus[False]):.2f} vs {min(cpus[True]):.2f} s")
+
+
+def section_end_to_end(n_time: int, n_pos: int, rng) -> dict:
+    import xarray as xr
+
+    from xstack.uvstack.stack import uvstack
+
+    ds, tree, cat, uvw, a1, a2, freq, ra, dec, nvis = type6_data(n_time, n_pos, rng)
     small = xr.DataTree.from_dict({"spw0_field0": ds.isel(time=slice(0, 2))})
     for engine in ("numba", "antenna"):  # JIT warm-up
         uvstack(small, cat, engine=engine)
@@ -298,6 +341,9 @@ def main() -> None:
     ap.add_argument("--markdown", default=None, help="also write the tables to this file")
     ap.add_argument("--skip-scaling", action="store_true")
     ap.add_argument("--only-e2e", action="store_true", help="only the end-to-end headline run")
+    ap.add_argument("--empirical", action="store_true",
+                    help="only the flux pass with and without the measured-noise sums "
+                         "(flux_err_empirical_jy), interleaved, best of 3")
     args = ap.parse_args()
     rng = np.random.default_rng(2015)
     n_time = max(2, int(round(3384 * args.scale)))
@@ -307,6 +353,13 @@ def main() -> None:
         f"python {platform.python_version()}; numba threads {K.numba.get_num_threads()}; "
         "other work was running on the machine at the same time")
     out("")
+    if args.empirical:
+        section_empirical(n_time, args.positions, rng)
+        out(f"load average at end: {os.getloadavg()[0]:.1f}")
+        if args.markdown:
+            with open(args.markdown, "w") as fh:
+                fh.write("\n".join(LINES) + "\n")
+        return
     e2e = section_end_to_end(n_time, args.positions, rng)
     if args.only_e2e:
         out(f"load average at end: {os.getloadavg()[0]:.1f}")

@@ -80,7 +80,9 @@ def make_stack_partition(*, n_ant=8, n_time=20, n_chan=4, freq0=1.4e9, dfreq=25e
         dish_diameters=np.full(n_ant, dish), frequency=freq,
         channel_width=np.full(n_chan, dfreq), polarization=list(pols),
         phase_center=phase_center, telescope_name=telescope, integration_time=10.0,
-        field_id=field_id, field_name=f"field{field_id}")
+        field_id=field_id, field_name=f"field{field_id}",
+        # visibilities at channel centres and integration mid-points: not smeared
+        attrs={"smearing": {"bandwidth": False, "time": False}})
 
 
 def direct_eq4(uvw_rows, freq, l, m, n, weight, inv_att):

@@ -34,7 +34,9 @@ def make_partition(n_time: int = 6, n_ant: int = 5, n_chan: int = 4, pols=("XX",
         dish_diameters=np.full(n_ant, dish),
         frequency=freq0 + 1e8 * np.arange(n_chan), channel_width=np.full(n_chan, 1e8),
         polarization=list(pols), phase_center=phase_center, telescope_name=telescope,
-        integration_time=6.0)
+        integration_time=6.0,
+        # random numbers, not channel averages of a sky: nothing for uvstack to un-smear
+        attrs={"smearing": {"bandwidth": False, "time": False}})
 
 
 @pytest.fixture

@@ -72,6 +72,13 @@ def _json_default(obj: Any) -> Any:
     return str(obj)
 
 
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    """Warnings on the command line: one ``warning: ...`` line on stderr, no source line."""
+    text = " ".join(str(message).split())
+    print(f"warning: {text}", file=sys.stderr if file is None else file)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``xstack`` console script."""
     parser = build_parser()
@@ -80,6 +87,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     warnings.filterwarnings("ignore", category=RuntimeWarning, module="dask")
+    shown = warnings.showwarning
+    warnings.showwarning = _show_warning
     try:
         status = args._run(args)
     except XstackError as exc:
@@ -88,6 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = shown
     return int(status or 0)
 
 

@@ -20,6 +20,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    default="standard",
                    help="catalog models: primary beam applied to the components (default: the "
                         "telescope's standard beam)")
+    p.add_argument("--autocorrelations", action="store_true",
+                   help="subtract the model from autocorrelations too (default: left out; "
+                        "they measure system power, not the sky)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -32,7 +35,8 @@ def run(args: argparse.Namespace) -> int:
 
     pb = None if args.primary_beam == "standard" else args.primary_beam
     out = subtract(args.data, args.model, args.out, overwrite=args.overwrite,
-                   progress=not args.no_progress, primary_beam=pb)
+                   progress=not args.no_progress, primary_beam=pb,
+                   autocorrelations=args.autocorrelations)
     if args.json:
         emit_json({"output": str(out), "model": str(args.model)})
     return 0

@@ -47,10 +47,23 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--engine", default="auto", choices=("auto", "antenna", "numba", "numpy", "nufft"),
                    help="phasor engine, float64 phases (default auto: per-antenna phasors where "
                    "the UVW factorise to 1e-9 rad, else per-row numba)")
+    p.add_argument("--smearing", default="auto", choices=("auto", "correct", "none"),
+                   help="correct each position for bandwidth and time-average smearing: auto "
+                   "(default: data that carry it, i.e. real data and simulations that asked for "
+                   "it), correct (always), none")
+    p.add_argument("--errors", default="auto", choices=("auto", "weights", "empirical"),
+                   help="which flux error to print first: weights (from WEIGHT as 1/sigma^2), "
+                        "empirical (from the visibility scatter between neighbouring channels) "
+                        "or auto (default: empirical when the two differ by more than 20%%, "
+                        "i.e. when WEIGHT is not 1/sigma^2 of the data, else weights); "
+                        "--json carries both")
     p.add_argument("--profile-bins", type=int, default=20, metavar="N",
                    help="number of uv-distance bins of the profile (default 20)")
     p.add_argument("--profile-png", default=None, metavar="P",
                    help="uv-profile plot (default OUT_uvprofile.png next to OUT.zarr)")
+    p.add_argument("--autocorrelations", action="store_true",
+                   help="stack autocorrelations too (default: left out; they measure system power, "
+                        "not the sky)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -59,6 +72,25 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def _stem(out: Path) -> Path:
     return out.with_name(out.name[:-5] if out.name.endswith(".zarr") else out.name)
+
+
+def first_error(res: Any, errors: str) -> str:
+    """Which error the human output leads with: ``weights`` or ``empirical`` (``--errors``).
+
+    ``auto`` takes the empirical error when it exists and differs from the weight-based one by
+    more than :data:`xstack.uvstack.stack.EMPIRICAL_TOLERANCE` (the weights are then not
+    1/sigma^2 of the data, while the scatter of the data is measured), else the weights.
+    """
+    import math
+
+    from xstack.uvstack.stack import EMPIRICAL_TOLERANCE
+
+    emp = res.flux_err_empirical_jy
+    if errors == "weights" or not math.isfinite(emp):
+        return "weights"
+    if errors == "empirical":
+        return "empirical"
+    return "empirical" if abs(emp / res.flux_err_jy - 1) > EMPIRICAL_TOLERANCE else "weights"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -95,11 +127,14 @@ def run(args: argparse.Namespace) -> int:
     res = uvstack(data if len(data) > 1 else data[0], positions, weighting=args.weighting,
                   primary_beam=args.primary_beam, pb_cutoff=args.pb_cutoff, uvmin=args.uvmin,
                   uvmax=args.uvmax, noise_image=args.noise_image, polarizations=pols,
-                  engine=args.engine, out=out,
+                  engine=args.engine, out=out, smearing=args.smearing,
+                  autocorrelations=args.autocorrelations,
                   overwrite=args.overwrite, progress=progress)
     table = uv_profile(out, bins=args.profile_bins, uvmin=args.uvmin, uvmax=args.uvmax,
                        polarizations=pols)
+    first = first_error(res, args.errors)
     table.meta.update({"flux_jy": res.flux_jy, "flux_err_jy": res.flux_err_jy,
+                       "flux_err_empirical_jy": res.flux_err_empirical_jy,
                        "n_positions": res.n_positions})
     with atomic_output(ecsv, overwrite=args.overwrite) as tmp:
         table.write(str(tmp), format="ascii.ecsv")
@@ -107,12 +142,16 @@ def run(args: argparse.Namespace) -> int:
                     title=f"uv-stack of {res.n_positions} positions")
     seconds = time.perf_counter() - t0
     if args.json:
-        emit_json({**res.to_dict(), "output": str(out), "profile_table": str(ecsv),
+        emit_json({**res.to_dict(), "errors": args.errors, "errors_first": first,
+                   "output": str(out), "profile_table": str(ecsv),
                    "profile_png": str(png), "seconds": round(seconds, 3)})
     else:
         import sys
 
-        print(f"stacked flux {res.flux_jy:.6g} +- {res.flux_err_jy:.3g} Jy from "
-              f"{res.n_positions} positions, {res.n_visibilities} visibilities -> {out}",
-              file=sys.stderr)
+        errs = {"weights": (res.flux_err_jy, "from WEIGHT"),
+                "empirical": (res.flux_err_empirical_jy, "from the visibility scatter")}
+        other = "empirical" if first == "weights" else "weights"
+        print(f"stacked flux {res.flux_jy:.6g} +- {errs[first][0]:.3g} Jy ({errs[first][1]}; "
+              f"{errs[other][1]}: +- {errs[other][0]:.3g} Jy) from {res.n_positions} positions, "
+              f"{res.n_visibilities} visibilities -> {out}", file=sys.stderr)
     return 0

@@ -14,18 +14,19 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from xstack._select import PARALLEL_HANDS, sky_correlations
 from xstack.errors import XstackError
-
-PARALLEL_HANDS = ("XX", "YY", "RR", "LL", "I")
 
 #: Visibilities per block when a partition is not dask-backed.
 _BLOCK_VIS = 4_000_000
 
 
-def as_partitions(data: Any) -> list[tuple[str, xr.Dataset]]:
+def as_partitions(data: Any, autocorrelations: bool = False) -> list[tuple[str, xr.Dataset]]:
     """Normalise a store path, DataTree, mapping of Datasets or a Dataset to partitions.
 
-    Objects with a ``stacked`` attribute (e.g. a ``StackResult``) are unwrapped.
+    Objects with a ``stacked`` attribute (e.g. a ``StackResult``) are unwrapped. Unless
+    ``autocorrelations``, autocorrelation baselines come back flagged
+    (:func:`xstack._select.sky_correlations`): they do not measure the sky.
     """
     from xstack.schema import iter_partitions, open_store, validate_partition
 
@@ -49,7 +50,7 @@ def as_partitions(data: Any) -> list[tuple[str, xr.Dataset]]:
         raise XstackError("no partitions with visibilities")
     for name, ds in parts:
         validate_partition(ds, name)
-    return parts
+    return [(name, sky_correlations(ds, autocorrelations)) for name, ds in parts]
 
 
 def parallel_hand_index(ds: xr.Dataset, name: str = "partition") -> np.ndarray:

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from xstack._select import PARALLEL_HANDS, autocorrelation_mask
 from xstack.errors import XstackError
-from xstack.imaging.image import PARALLEL_HANDS
 
 _ARCSEC = math.pi / (180.0 * 3600.0)
 
@@ -125,8 +125,8 @@ def _subtract_block(vis: np.ndarray, model: np.ndarray, pols: list[int]) -> np.n
 
 
 def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool = False,
-             progress: bool = False, epsilon: float = 1e-7, primary_beam: str | None = None
-             ) -> Path:
+             progress: bool = False, epsilon: float = 1e-7, primary_beam: str | None = None,
+             autocorrelations: bool = False) -> Path:
     """Subtract a model from every partition of a store; write the residual store.
 
     Parameters
@@ -148,6 +148,9 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     primary_beam
         Catalog models only: ``None`` (the telescope's standard beam), ``"none"`` (no
         attenuation), ``"airy"`` or ``"gaussian"``.
+    autocorrelations
+        Subtract the model from autocorrelation baselines too. Off by default: they hold an
+        antenna's system power, not the sky, and are copied unchanged.
 
     Raises
     ------
@@ -209,6 +212,9 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
             func = _image_block
         resid = da.blockwise(func, "tbfp", vis, "tbfp", uvw, "tbx", dtype=vis.dtype,
                              concatenate=True, **kwargs)
+        auto = autocorrelation_mask(ds)
+        if auto.any() and not autocorrelations:
+            resid = da.where(auto[None, :, None, None], vis, resid)
         new = ds.copy()
         new["VISIBILITY"] = (ds["VISIBILITY"].dims, resid, dict(ds["VISIBILITY"].attrs))
         new.attrs["subtracted_model"] = str(model) if not hasattr(model, "colnames") else "table"

@@ -13,6 +13,8 @@ REAL_MS = {
     "evla": ("day2_TDEM0003_10s_norx_1src_1spw.ms", "day2_TDEM0003_10s_norx_1src_1spw.ms"),
     "alma": ("X5707_1spw_1scan_10chan_1time_1bl_noatm.ms.tar.gz",
              "X5707_1spw_1scan_10chan_1time_1bl_noatm.ms"),
+    "ovro-lwa": ("2018-03-21-01_26_33_0004384620257280_000000_downselected.ms",
+                 "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"),
 }
 
 
@@ -47,7 +49,8 @@ def real_ms(name: str, dest_dir: str | os.PathLike) -> Path:
         ``"evla"`` (day2_TDEM0003_10s_norx_1src_1spw.ms: EVLA, 64 channels, RR/RL/LR/LL,
         missing baselines, jittered time stamps) or ``"alma"``
         (X5707_1spw_1scan_10chan_1time_1bl_noatm.ms: ALMA, three fields in the FIELD table,
-        one baseline, 10 channels).
+        one baseline, 10 channels) or ``"ovro-lwa"`` (OVRO-LWA, one integration, 109
+        channels, XX/YY/XY/YX, 210 rows of which 20 are autocorrelations).
     dest_dir
         Existing directory to copy (or unpack) into; the original is never opened.
 

@@ -475,15 +475,21 @@ def weighted_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> tup
 
 
 @numba.njit(parallel=True, cache=True)
-def _sums_numba(vis, weight, flag, phasor, has_phasor, pol_mask, uv_mask, has_uv):
-    """One pass, no temporaries: [sum w Re(VP), sum w, sum w |P|^2, sum w Im(VP), count]."""
+def _sums_numba(vis, weight, flag, phasor, has_phasor, pol_mask, uv_mask, has_uv, noise,
+                has_noise):
+    """One pass, no temporaries: the NSUMS sums of :func:`stack_sums`."""
     nrow, nchan, npol = vis.shape
+    nbl = noise.shape[0]
     s0 = 0.0
     s1 = 0.0
     s2 = 0.0
     s3 = 0.0
     s4 = 0.0
+    s5 = 0.0
+    s6 = 0.0
+    s7 = 0.0
     for r in numba.prange(nrow):
+        b = r % nbl
         for c in range(nchan):
             if has_uv and not uv_mask[r, c]:
                 continue
@@ -509,17 +515,46 @@ def _sums_numba(vis, weight, flag, phasor, has_phasor, pol_mask, uv_mask, has_uv
                 s2 += w * p2
                 s3 += w * (vr * pi + vi * pr)
                 s4 += 1.0
-    return np.array([s0, s1, s2, s3, s4])
+                if has_noise:
+                    # measured sigma^2 = a + b / w (xstack._scatter.noise_model)
+                    s5 += w * (w * noise[b, p, 0] + noise[b, p, 1]) * p2
+                    kind = noise[b, p, 2]
+                    if kind == 1.0:
+                        s6 += 1.0
+                    elif kind == 2.0:
+                        s7 += 1.0
+                else:
+                    s5 += w * p2
+                    s7 += 1.0
+    return np.array([s0, s1, s2, s3, s4, s5, s6, s7])
 
 
-def stack_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> np.ndarray:
-    """``[sum w Re(VP), sum w, sum w |P|^2, sum w Im(VP), count]`` of one chunk (float64).
+#: Number of sums returned by :func:`stack_sums`.
+NSUMS = 8
 
-    Parameters as in :func:`weighted_sums`. ``sum w |P|^2`` gives the honest variance of the
-    weighted mean when ``w = 1/sigma^2`` of the input visibility (per real component):
-    ``Var(Re(VP)) = |P|^2 / w``, hence
+
+def stack_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None, noise=None) -> np.ndarray:
+    """The flux sums of one chunk (float64, length :data:`NSUMS`).
+
+    ``[sum w Re(VP), sum w, sum w |P|^2, sum w Im(VP), count,
+    sum w^2 sigma_e^2 |P|^2, count pooled, count weights]``.
+
+    Parameters as in :func:`weighted_sums`, plus
+
+    noise : (nbl, npol, 3) float64, optional
+        The measured variance model of :func:`xstack._scatter.noise_model`,
+        ``sigma_e^2 = a + b / w`` per (baseline, correlation) with its source code; rows are
+        time-major, row ``r`` belongs to baseline ``r % nbl``. Without it ``sigma_e^2 = 1/w``
+        (every visibility counts as "weights").
+
+    ``sum w |P|^2`` gives the honest variance of the weighted mean when ``w = 1/sigma^2`` of
+    the input visibility (per real component): ``Var(Re(VP)) = |P|^2 / w``, hence
     ``Var(mean) = sum_i s_i^2 w_i |P_i|^2 / (sum_i s_i w_i)^2`` with per-partition weight
-    factors ``s_i`` (applied by the caller). Compiled (numba), one pass, no temporaries.
+    factors ``s_i`` (applied by the caller). ``sum w^2 sigma_e^2 |P|^2`` is the same variance
+    with the measured sigma_e^2 in place of 1/w (right whatever the weights' scale). The two
+    counts are the visibilities whose sigma_e^2 came from the block's pooled weight scale or
+    from the weights as they are (:mod:`xstack._scatter`). Compiled (numba), one pass, no
+    temporaries.
     """
     vis = np.asarray(vis)
     if vis.dtype.kind != "c":
@@ -534,11 +569,19 @@ def stack_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> np.nda
           else np.ones((1, 1), dtype=np.complex128))
     has_uv = uv_mask is not None
     um = np.asarray(uv_mask, dtype=bool) if has_uv else np.ones((1, 1), dtype=bool)
+    has_noise = noise is not None
+    nz = (np.ascontiguousarray(noise, dtype=np.float64) if has_noise
+          else np.zeros((1, npol, 3)))
+    if has_noise and (nz.ndim != 3 or nz.shape[1:] != (npol, 3) or nz.shape[0] == 0
+                      or nrow % nz.shape[0]):
+        raise ValueError(f"noise must have shape (nbl, {npol}, 3) with nbl dividing {nrow} "
+                         f"rows, got {nz.shape}")
     with _KERNEL_LOCK:
-        return _sums_numba(vis, weight, flag, ph, has_phasor, pm, um, has_uv)
+        return _sums_numba(vis, weight, flag, ph, has_phasor, pm, um, has_uv, nz, has_noise)
 
 
-def stack_sums_numpy(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> np.ndarray:
+def stack_sums_numpy(vis, weight, flag, phasor, pol_mask=None, uv_mask=None,
+                     noise=None) -> np.ndarray:
     """Plain-numpy twin of :func:`stack_sums` (tests compare the two)."""
     vis = np.asarray(vis)
     good, w = _use_mask(vis, weight, flag, pol_mask, uv_mask)
@@ -549,5 +592,15 @@ def stack_sums_numpy(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> 
         p2 = (p.real**2 + p.imag**2) * np.ones((1, 1, vis.shape[2]))
     else:
         p2 = np.ones(vis.shape)
+    if noise is None:
+        var_w = w  # w^2 * (1/w)
+        kind = np.full(vis.shape, 2.0)
+    else:
+        nz = np.asarray(noise, dtype=np.float64)
+        per_row = np.tile(nz, (vis.shape[0] // nz.shape[0], 1, 1))[:, None, :, :]
+        var_w = w * (w * per_row[..., 0] + per_row[..., 1])
+        kind = np.broadcast_to(per_row[..., 2], vis.shape)
     return np.array([np.sum(w * v.real), np.sum(w), np.sum(w * p2), np.sum(w * v.imag),
-                     float(np.count_nonzero(good))])
+                     float(np.count_nonzero(good)), np.sum(np.where(good, var_w, 0.0) * p2),
+                     float(np.count_nonzero(good & (kind == 1))),
+                     float(np.count_nonzero(good & (kind == 2)))])

@@ -19,10 +19,10 @@ import xarray as xr
 from astropy import units as u
 from astropy.table import Table
 
+from xstack._select import parallel_hand_mask
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
 from xstack.errors import XstackError
 
-_PARALLEL = ("XX", "YY", "RR", "LL")
 _NSUM = 8  # sum w, w Re, w Im, w^2, w^2 Re, w^2 Re^2, w^2 Im, w^2 Im^2 ; + count
 
 
@@ -138,7 +138,7 @@ def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any
     for ds in parts:
         pols = [str(p).upper() for p in ds["polarization"].values]
         if polarizations == "parallel":
-            pmask = np.array([p in _PARALLEL for p in pols])
+            pmask = parallel_hand_mask(pols)
         elif polarizations == "all":
             pmask = np.ones(len(pols), bool)
         else:

@@ -14,10 +14,9 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from xstack._select import PARALLEL_HANDS
 from xstack.beams import standard_beam
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
-
-PARALLEL = ("XX", "YY", "RR", "LL")
 
 
 def unit_vectors(ra: np.ndarray, dec: np.ndarray, ra0: float, dec0: float) -> np.ndarray:
@@ -43,7 +42,12 @@ def reference_uvstack(partitions: list[tuple[str, xr.Dataset]], ra_deg: Any, dec
 
     Same conventions as :func:`xstack.uvstack.stack.uvstack` (``docs/uvstack.md``); the
     primary beam is ``none`` or a model name for :func:`xstack.beams.standard_beam`.
+    Autocorrelations are left out. ``sigma2`` with ``sigma`` is implemented for one
+    partition only (the per-pointing rule of several is checked analytically in the tests).
     """
+    partitions = list(partitions)
+    if weighting == "sigma2" and sigma is not None and len(partitions) > 1:
+        raise NotImplementedError("reference sigma2 weights on several partitions")
     ra = np.radians(np.asarray(ra_deg, dtype=np.float64))
     dec = np.radians(np.asarray(dec_deg, dtype=np.float64))
     num = den = var = 0.0
@@ -57,6 +61,9 @@ def reference_uvstack(partitions: list[tuple[str, xr.Dataset]], ra_deg: Any, dec
         vis = np.asarray(ds["VISIBILITY"].values).astype(np.complex128)
         wt = np.asarray(ds["WEIGHT"].values, dtype=np.float64)
         flag = np.asarray(ds["FLAG"].values, dtype=bool)
+        if "baseline_antenna1_id" in ds.variables:  # autocorrelations do not measure the sky
+            auto = ds["baseline_antenna1_id"].values == ds["baseline_antenna2_id"].values
+            flag = flag | auto[None, :, None, None]
         uvw = np.asarray(ds["UVW"].values, dtype=np.float64)
         s = unit_vectors(ra, dec, ra0, dec0)
         theta = np.arccos(np.clip(s[:, 2], -1, 1))
@@ -104,7 +111,7 @@ def reference_uvstack(partitions: list[tuple[str, xr.Dataset]], ra_deg: Any, dec
         if lims[1] is not None:
             inrange &= (q if lims[1][1] == "m" else ql) <= lims[1][0]
         for p, pol in enumerate(pols):
-            if pol not in PARALLEL:
+            if pol not in PARALLEL_HANDS:
                 continue
             good = (~flag[..., p]) & (wt[..., p] > 0) & inrange & np.isfinite(vis[..., p])
             ww = wt[..., p][good] * total

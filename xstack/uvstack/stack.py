@@ -15,7 +15,6 @@ silent.
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,21 +27,31 @@ import xarray as xr
 from astropy.table import Table
 
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
+from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
+from xstack._select import parallel_hand_mask, sky_correlations
 from xstack.beams import standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, parse_distance, radec_to_lmn, read_catalog
 from xstack.errors import XstackError
 from xstack.schema import default_time_chunk, iter_partitions, open_store
 from xstack.uvstack import kernels
+from xstack.uvstack import smearing as _smearing
 from xstack.uvstack.profile import plot_uv_profile, uv_profile  # noqa: F401  (public re-export)
 
 WEIGHTINGS = ("none", "pb", "sigma2", "column")
 ENGINES = ("auto", "antenna", "numba", "numpy", "nufft")
 #: Engines that evaluate a block of rows, in the order of their row counters in the sums
-#: (after the 5 flux sums of :func:`kernels.stack_sums`) and their codes in the trailing
+#: (after the _NSUMS flux sums of :func:`kernels.stack_sums`) and their codes in the trailing
 #: column of a chunk's shared phasor.
 _ROW_ENGINES = ("numba", "antenna", "numpy", "nufft")
-_NSUMS = 5
-PARALLEL_HANDS = ("XX", "YY", "RR", "LL")
+#: Flux sums per chunk (:func:`kernels.stack_sums`: flux, weights, variance from the weights,
+#: imaginary part, count, variance from the measured noise, counts of its two fallbacks)
+_NSUMS = kernels.NSUMS
+#: Measure the visibility noise per block for ``flux_err_empirical_jy`` (benchmarks switch
+#: it off to time what it costs; the error is then NaN)
+_EMPIRICAL_SUMS = True
+#: Relative difference of the weight-based and the measured flux error above which
+#: :func:`uvstack` warns (the weights are then not 1/sigma^2 of the data)
+EMPIRICAL_TOLERANCE = 0.2
 
 
 @dataclass
@@ -54,7 +63,21 @@ class StackResult:
     stacked
         Partition name -> lazy stacked :class:`xarray.Dataset` in the xstack schema.
     flux_jy, flux_err_jy
-        Weighted mean of Re V of the stack (Jy) and its 1-sigma uncertainty from the weights.
+        Weighted mean of Re V of the stack (Jy) and its 1-sigma uncertainty from the weights
+        (WEIGHT taken as 1/sigma^2 per real/imaginary part).
+    flux_err_empirical_jy
+        The same uncertainty with the noise measured from the visibilities (scatter of
+        neighbouring channels, or integrations for one channel; :mod:`xstack._scatter`) in
+        place of 1/WEIGHT: right whatever the weights' scale. NaN if not measured.
+    weight_scale
+        ``(flux_err_empirical_jy / flux_err_jy)^2``: the measured variance over the variance
+        the weights claim, averaged as the error bar weighs it (1 for honest weights).
+    noise_estimate
+        Where the measured noise came from: ``pairs`` (``channels``, ``integrations`` or
+        ``mixed``), and the visibilities of the flux whose variance is ``own`` (their
+        baseline's and correlation's estimate in their block), ``pooled`` (too few pairs:
+        their weights rescaled by one measured factor for the block) or ``weights`` (too few
+        pairs in the whole block: 1/WEIGHT as it is).
     flux_imag_jy
         The same mean of Im V (zero within errors for a real stacked source).
     n_positions
@@ -81,13 +104,22 @@ class StackResult:
     uncovered: Table
     flux_imag_jy: float = 0.0
     partition_sums: dict[str, list[float]] = field(default_factory=dict)
-    _keepalive: list[Any] = field(default_factory=list, repr=False)
+    flux_err_empirical_jy: float = float("nan")
+    weight_scale: float = float("nan")
+    noise_estimate: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready summary: flux_jy, flux_err_jy, n_positions, n_visibilities, options."""
+        """JSON-ready summary: flux_jy, flux_err_jy, flux_err_empirical_jy, weight_scale,
+        noise_estimate, n_positions, n_visibilities, options (NaN as None)."""
+        def num(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
         return {
             "flux_jy": float(self.flux_jy),
             "flux_err_jy": float(self.flux_err_jy),
+            "flux_err_empirical_jy": num(self.flux_err_empirical_jy),
+            "weight_scale": num(self.weight_scale),
+            "noise_estimate": dict(self.noise_estimate),
             "flux_imag_jy": float(self.flux_imag_jy),
             "n_positions": int(self.n_positions),
             "n_visibilities": int(self.n_visibilities),
@@ -103,8 +135,12 @@ def _is_ms(path: Path) -> bool:
     return path.is_dir() and (path / "table.dat").exists()
 
 
-def _load_datasets(data: Any, keepalive: list) -> list[tuple[str, list[tuple[str, xr.Dataset]]]]:
-    """Normalise ``data`` to [(label, [(partition name, Dataset), ...]), ...]."""
+def _load_datasets(data: Any) -> list[tuple[str, list[tuple[str, xr.Dataset]]]]:
+    """Normalise ``data`` to [(label, [(partition name, Dataset), ...]), ...].
+
+    A MeasurementSet is converted to a temporary store that lives exactly as long as some
+    lazy object can still read it (:func:`xstack._lifetime.tie_lifetime`).
+    """
     items = list(data) if isinstance(data, (list, tuple)) else [data]
     if not items:
         raise XstackError("no input data given")
@@ -123,10 +159,9 @@ def _load_datasets(data: Any, keepalive: list) -> list[tuple[str, list[tuple[str
             if _is_ms(path):
                 from xstack.io.convert import convert_ms
 
-                tmp = tempfile.TemporaryDirectory(prefix="xstack-uvstack-")
-                keepalive.append(tmp)
-                store = convert_ms(path, Path(tmp.name) / "converted.zarr")
-                tree = open_store(store)
+                owner = TemporaryStoreOwner(prefix="xstack-uvstack-")
+                store = convert_ms(path, Path(owner.path) / "converted.zarr")
+                tree = tie_lifetime(open_store(store), owner)
             else:
                 tree = open_store(path)
         else:
@@ -241,7 +276,7 @@ def _beam_for(primary_beam: Any, ds: xr.Dataset, cutoff: float):
 def _pol_mask(ds: xr.Dataset, polarizations: Any, where: str) -> np.ndarray:
     pols = [str(p).upper() for p in ds["polarization"].values]
     if polarizations in ("parallel", None):
-        mask = np.array([p in PARALLEL_HANDS for p in pols])
+        mask = parallel_hand_mask(pols)
     elif polarizations == "all":
         mask = np.ones(len(pols), dtype=bool)
     else:
@@ -354,13 +389,32 @@ def _engine_rows(counts):
     return np.array([counts.get(e, 0) for e in _ROW_ENGINES], dtype=np.float64)
 
 
+def _block_noise(vis, weight, flag, pol_mask):
+    """The block's measured noise model per (baseline, correlation) (:mod:`xstack._scatter`),
+    or None when switched off. Estimated from this block alone (its times, all channels):
+    the data are read once, for the flux and the noise together."""
+    if not _EMPIRICAL_SUMS:
+        return None
+    from xstack._scatter import noise_model
+
+    return noise_model(vis, weight, flag, pol_mask=np.asarray(pol_mask, dtype=bool))
+
+
+def _finish_empirical(total):
+    if not _EMPIRICAL_SUMS:
+        total[5] = np.nan
+    return total
+
+
 def _block_sums_with_phasor(vis, weight, flag, uvw, ph, frequency, pol_mask, lo, hi):
     nt, nb, nc, npol = vis.shape
     n = nt * nb
+    noise = _block_noise(vis, weight, flag, pol_mask)
     vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
     mask = uv_mask(uvw.reshape(n, 3), frequency, lo, hi)
     ph = ph.reshape(n, nc + 1)
-    total = kernels.stack_sums(vis, weight, flag, ph[:, :nc], pol_mask, mask)
+    total = _finish_empirical(kernels.stack_sums(vis, weight, flag, ph[:, :nc], pol_mask, mask,
+                                                 noise))
     codes = np.bincount(ph[:, nc].real.astype(np.int64), minlength=len(_ROW_ENGINES))
     return np.concatenate([total, codes.astype(np.float64)])[None, None, :]
 
@@ -370,6 +424,7 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
     total = np.zeros(_NSUMS)
     counts: dict[str, int] = {}
     pm = np.asarray(pol_mask, dtype=bool)
+    noise = _block_noise(vis, weight, flag, pm)
     for tsl, bsl in _steps(*vis.shape[:2]):
         v, w, f, x = (a[tsl, bsl] for a in (vis, weight, flag, uvw))
         nt, nb, nc, npol = v.shape
@@ -382,8 +437,9 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
                                  _antennas(a1, a2, bsl), rows=rows, tol_rad=tol_rad)
         counts[used] = counts.get(used, 0) + n
         mask = uv_mask(x, frequency, lo, hi)
-        total += kernels.stack_sums(v, w, f, ph.reshape(n, nc), pol_mask, mask)
-    return np.concatenate([total, _engine_rows(counts)])[None, None, :]
+        total += kernels.stack_sums(v, w, f, ph.reshape(n, nc), pol_mask, mask,
+                                    None if noise is None else noise[bsl])
+    return np.concatenate([_finish_empirical(total), _engine_rows(counts)])[None, None, :]
 
 
 # --- planning -----------------------------------------------------------------------------
@@ -398,10 +454,15 @@ class _Plan:
     sum_weight: float
     params: np.ndarray  # (nused, 3 + nchan)
     pol_mask: np.ndarray
+    #: (npos,) 1 - L_k at the mean frequency (0 where unused or not corrected), and the
+    #: smearing effects corrected (xstack.uvstack.smearing)
+    smearing_loss: np.ndarray | None = None
+    smearing_effects: tuple[bool, bool] = (False, False)
 
 
-def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, cutoff,
-                    polarizations) -> _Plan:
+def _geometry(ds, ra, dec, beam_spec, cutoff):
+    """Positions in one pointing: (l, m, n - 1, A (npos, nchan), A at the mean frequency,
+    used = inside the primary beam)."""
     ra0, dec0 = (float(x) for x in ds.attrs["phase_center"])
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
     l, m, n, n1 = radec_to_lmn(ra, dec, ra0, dec0)
@@ -414,7 +475,70 @@ def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, 
     if not is_none:
         # enters the pointing only if A >= cutoff in every channel (docs/uvstack.md)
         used &= np.all(att >= cutoff, axis=1) & (cutoff > 0 or np.all(att > 0, axis=1))
-    if weighting == "none":
+    return l, m, n1, att, att_ref, used
+
+
+def _block_weight_total(weight, flag, uvw, frequency, pol_mask, lo, hi):
+    """Sum of the visibility weights of one block that enter the flux (unflagged, selected
+    correlations, weight > 0, uv range)."""
+    nt, nb, nc, npol = weight.shape
+    w = np.where(flag | ~(weight > 0), 0.0, weight.astype(np.float64))[..., pol_mask]
+    mask = uv_mask(uvw.reshape(nt * nb, 3), frequency, lo, hi)
+    if mask is not None:
+        w = w * mask.reshape(nt, nb, nc)[..., None]
+    return np.array([[[np.nansum(w)]]])
+
+
+def _weight_total(ds, pol_mask, lo, hi):
+    """Lazy total visibility weight of a partition (reads WEIGHT, FLAG and UVW only)."""
+    ds = _as_dask(ds)
+    freq = np.asarray(ds["frequency"].values, dtype=np.float64)
+    return da.blockwise(_block_weight_total, "tbs", ds["WEIGHT"].data, "tbcp", ds["FLAG"].data,
+                        "tbcp", ds["UVW"].data, "tbx", dtype=np.float64, concatenate=True,
+                        new_axes={"s": 1}, adjust_chunks={"t": 1, "b": 1}, frequency=freq,
+                        pol_mask=np.asarray(pol_mask, bool), lo=lo, hi=hi).sum()
+
+
+def _sigma2_pointing_weights(parts, ra, dec, sigma, beam_spec, cutoff, polarizations, lo, hi,
+                             progress=False):
+    """Per-(pointing, position) weights of ``sigma2`` on several pointings (paper §3.3.2).
+
+    sigma_k is the noise of position k's primary-beam corrected flux in the whole data (a
+    catalog ``sigma`` or a local-noise image of the mosaic). Pointing p sees position k with
+    noise proportional to 1/(A_pk sqrt(W_p)) (W_p: the pointing's total visibility weight),
+    so it holds the fraction f_pk = A_pk^2 W_p / sum_q A_qk^2 W_q of the position's
+    information. The weights w_pk = A_pk^2 / (sigma_k^2 sum_q A_qk^2 W_q) give each pointing's
+    estimate of position k the effective weight w_pk W_p = f_pk / sigma_k^2: a position near
+    a pointing's edge enters that pointing with its small share, not with full weight.
+
+    Returns
+    -------
+    list of (npos,) arrays, one per partition in ``parts`` order.
+    """
+    from xstack._progress import dask_progress
+
+    geo = [_geometry(ds, ra, dec, beam_spec, cutoff) for _, ds in parts]
+    totals = [_weight_total(ds, _pol_mask(ds, polarizations, name), lo, hi)
+              for name, ds in parts]
+    with dask_progress("uvstack: pointing weights", enabled=progress):
+        wtot = np.array(dask.compute(*totals), dtype=np.float64)
+    a2 = np.array([np.where(g[5], g[4], 0.0) ** 2 for g in geo])      # (npart, npos)
+    info = (a2 * wtot[:, None]).sum(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(info > 0, a2 / (sigma[None, :] ** 2 * info[None, :]), 0.0)
+    # only ratios matter: scale to ~1 so that no weight under- or overflows downstream
+    peak = float(np.max(w)) if w.size else 0.0
+    return list(w / peak) if peak > 0 else list(w)
+
+
+def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, cutoff,
+                    polarizations, smearing=("none", None, None),
+                    position_weight=None) -> _Plan:
+    freq = np.asarray(ds["frequency"].values, dtype=np.float64)
+    l, m, n1, att, att_ref, used = _geometry(ds, ra, dec, beam_spec, cutoff)
+    if position_weight is not None:
+        w = position_weight
+    elif weighting == "none":
         w = np.ones(ra.size)
     elif weighting == "pb":
         w = att_ref**2
@@ -425,13 +549,21 @@ def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, 
     w = np.where(used, w, 0.0)
     total = float(w.sum())
     sel = used & (w > 0)
+    smear_loss, effects = np.zeros(ra.size), (False, False)
     if total > 0:
-        coef = w[sel, None] / att[sel] / total
+        # smearing loss L_k(nu), corrected as the primary beam is (xstack.uvstack.smearing)
+        effects = _smearing.data_effects(ds, smearing[0])
+        L, L_ref = _smearing.loss_factors(
+            ds, l[sel], m[sel], n1[sel], bandwidth=effects[0], time=effects[1],
+            pol_mask=_pol_mask(ds, polarizations, name),
+            uv_select=lambda x, f: uv_mask(x, f, smearing[1], smearing[2]))
+        smear_loss[sel] = 1.0 - L_ref
+        coef = w[sel, None] / (att[sel] * L) / total
         params = np.column_stack([l[sel], m[sel], n1[sel], coef])
     else:
         params = np.zeros((0, 3 + freq.size))
     return _Plan(name, ds, used, w, att_ref, total, params,
-                 _pol_mask(ds, polarizations, name))
+                 _pol_mask(ds, polarizations, name), smear_loss, effects)
 
 
 def _as_dask(ds: xr.Dataset) -> xr.Dataset:
@@ -540,7 +672,8 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             pb_cutoff: float = 0.1, uvmin: Any = None, uvmax: Any = None, sigma: Any = None,
             noise_image: Any = None, polarizations: Any = "parallel", engine: str = "auto",
             out: str | os.PathLike | None = None, overwrite: bool = False,
-            progress: bool = False, antenna_tol_rad: float = ANTENNA_TOL_RAD) -> StackResult:
+            progress: bool = False, antenna_tol_rad: float = ANTENNA_TOL_RAD,
+            autocorrelations: bool = False, smearing: str = "auto") -> StackResult:
     """Stack visibilities at catalog positions (paper eq. 4) and estimate the stacked flux.
 
     Parameters
@@ -602,6 +735,17 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     antenna_tol_rad
         Largest accepted bound (radians, at any position and channel) of the phase error of
         the per-antenna factorisation (:meth:`xstack._antenna.AntennaLayout.phase_error`).
+    autocorrelations
+        Include autocorrelation baselines (antenna1 == antenna2). Off by default: they measure
+        an antenna's system power, not the sky, and are flagged in the flux and in the
+        written stack (as CASA and WSClean leave them out).
+    smearing
+        Bandwidth and time-average smearing (:mod:`xstack.uvstack.smearing`): ``auto``
+        corrects the data that carry it (real data; simulations whose scene asked for it,
+        partition attribute ``smearing``), ``correct`` always, ``none`` never. The loss
+        L_k(nu) of each position (weighted mean smearing factor over its pointing's
+        visibilities, from a subsample of rows) divides its coefficient like A_k;
+        ``positions["smearing_loss"]`` holds 1 - L_k at the mean frequency.
 
     Returns
     -------
@@ -621,6 +765,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
     if engine not in ENGINES:
         raise XstackError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
+    _smearing.check_mode(smearing)
     engine_used = engine
     if not 0 <= float(pb_cutoff) < 1:
         raise XstackError(f"pb_cutoff must be in [0, 1), got {pb_cutoff}")
@@ -652,10 +797,13 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             noise = measure_local_noise(noise_image, table)
             # rows without an estimate get weight 0 here; a used one is an error below
             sig = np.where(np.isfinite(noise.sigma), noise.sigma, np.inf)
-            if noise.pbcor is False and str(primary_beam).lower() != "none":
+            if noise.pbcor is False and noise.beam is None and \
+                    str(primary_beam).lower() != "none":
                 warnings.warn(f"noise image {noise.name} is not primary-beam corrected "
-                              "(XSPBCOR = F): its sigma_k miss the 1/A_k rise of the noise "
-                              "of the corrected flux; image with pbcor=True", stacklevel=2)
+                              "(XSPBCOR = F) and names no primary beam (XSPBFILE): its sigma_k "
+                              "miss the 1/A_k rise of the noise of the corrected flux; give "
+                              "the residual of xstack image (it carries OUT.pb.fits) or a "
+                              "corrected image", stacklevel=2)
         elif "sigma" in table.colnames:
             sig = np.asarray(table["sigma"], dtype=np.float64)
         if noise is None and sig is not None and not np.all(np.isfinite(sig) & (sig > 0)):
@@ -676,15 +824,19 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     if out is not None:
         check_output(out, overwrite)
 
-    keepalive: list[Any] = []
-    datasets = _load_datasets(data, keepalive)
+    datasets = _load_datasets(data)
     multi = len(datasets) > 1
-    plans: list[_Plan] = []
-    for i, (_label, parts) in enumerate(datasets):
-        for name, ds in parts:
-            pname = f"{name}_ds{i}" if multi else name
-            plans.append(_plan_partition(pname, ds, ra, dec, sig, col_weight, weighting,
-                                         beam_spec, float(pb_cutoff), polarizations))
+    parts = [(f"{name}_ds{i}" if multi else name, sky_correlations(ds, autocorrelations))
+             for i, (_label, group) in enumerate(datasets) for name, ds in group]
+    position_weights: list[Any] = [None] * len(parts)
+    if weighting == "sigma2" and sig is not None and len(parts) > 1:
+        position_weights = _sigma2_pointing_weights(parts, ra, dec, sig, beam_spec,
+                                                    float(pb_cutoff), polarizations, lo, hi,
+                                                    progress)
+    plans: list[_Plan] = [
+        _plan_partition(pname, ds, ra, dec, sig, col_weight, weighting, beam_spec,
+                        float(pb_cutoff), polarizations, (smearing, lo, hi), pw)
+        for (pname, ds), pw in zip(parts, position_weights)]
     covered = np.zeros(npos, dtype=bool)
     for p in plans:
         covered |= p.used
@@ -706,6 +858,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     for p in active:
         used_pos |= p.used & (p.weight > 0)
     center = _mean_direction(ra[used_pos], dec[used_pos])
+    worst = max(float(p.smearing_loss.max(initial=0.0)) for p in active)
+    if worst > _smearing.WARN_LOSS:
+        warnings.warn(f"smearing costs up to {100 * worst:.0f}% of a position's flux (corrected "
+                      "to first order; --smearing none to leave it)", stacklevel=2)
     options = {
         "weighting": weighting,
         "primary_beam": beam_spec.path if isinstance(beam_spec, FitsBeam) else str(primary_beam),
@@ -713,6 +869,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         "uvmin": None if uvmin is None else str(uvmin),
         "uvmax": None if uvmax is None else str(uvmax),
         "polarizations": polarizations if isinstance(polarizations, str) else list(polarizations),
+        "autocorrelations": bool(autocorrelations),
+        "smearing": smearing,
+        "smearing_corrected": [e for i, e in enumerate(("bandwidth", "time"))
+                               if any(p.smearing_effects[i] for p in active)],
         "engine": engine_used,
         "sigma": (f"local-noise:{noise.name}" if noise is not None else "given"
                   if sig is not None else "analytic" if weighting == "sigma2" else None),
@@ -740,16 +900,30 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         if not den > 0 or nvis == 0:
             raise XstackError("no unflagged visibility with positive weight in the selected "
                               "polarizations and uv range")
+        var_w = sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))
+        # the same variance with the noise measured per block in place of 1/WEIGHT
+        var_e = sum(s_p**2 * s[5] for s_p, s in zip(scale, sums))
+        n_pooled = int(round(sum(s[6] for s in sums)))
+        n_weights = int(round(sum(s[7] for s in sums)))
+        multichan = {int(p.ds.sizes["frequency"]) > 1 for p in active}
         measured.update(
             sums=sums, n_visibilities=nvis,
             flux_jy=float(sum(s_p * s[0] for s_p, s in zip(scale, sums)) / den),
-            flux_err_jy=float(np.sqrt(sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))) / den),
+            flux_err_jy=float(np.sqrt(var_w) / den),
+            flux_err_empirical_jy=float(np.sqrt(var_e) / den),
+            weight_scale=float(var_e / var_w) if var_w > 0 else float("nan"),
+            noise_estimate={
+                "pairs": ("mixed" if len(multichan) > 1 else "channels" if True in multichan
+                          else "integrations"),
+                "own": nvis - n_pooled - n_weights, "pooled": n_pooled, "weights": n_weights},
             flux_imag_jy=float(sum(s_p * s[3] for s_p, s in zip(scale, sums)) / den))
         rows = np.sum([s[_NSUMS:] for s in sums], axis=0)
         ran = {e: int(r) for e, r in zip(_ROW_ENGINES, rows) if r > 0}
         options["engine"] = next(iter(ran)) if len(ran) == 1 else "mixed" if ran else engine
         options["engine_rows"] = ran
+        emp = measured["flux_err_empirical_jy"]
         return {"uvstack": {"flux_jy": measured["flux_jy"], "flux_err_jy": measured["flux_err_jy"],
+                            "flux_err_empirical_jy": emp if np.isfinite(emp) else None,
                             "n_positions": n_positions, "n_visibilities": nvis,
                             "options": options}}
 
@@ -772,15 +946,24 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     pos["used"] = np.stack([p.used & (p.weight > 0) for p in plans], axis=1)
     pos["weight_used"] = np.stack([p.weight for p in plans], axis=1)
     pos["attenuation"] = np.stack([p.attenuation for p in plans], axis=1)
+    pos["smearing_loss"] = np.stack([p.smearing_loss for p in plans], axis=1)
     pos["n_pointings"] = pos["used"].sum(axis=1)
     if noise is not None:
         pos["sigma_local"] = noise.sigma
     pos.meta["partitions"] = [p.name for p in plans]
     sums = measured["sums"]
+    ratio = measured["flux_err_empirical_jy"] / measured["flux_err_jy"]
+    if np.isfinite(ratio) and abs(ratio - 1) > EMPIRICAL_TOLERANCE:
+        warnings.warn(f"uv-stack flux error from WEIGHT ({measured['flux_err_jy']:.3g} Jy) and from "
+                      f"the visibility scatter ({measured['flux_err_empirical_jy']:.3g} Jy) differ "
+                      f"by {ratio:.3g}x: the weights are mis-scaled; choose the error printed with "
+                      "--errors (flux_err_jy / flux_err_empirical_jy)", stacklevel=2)
     return StackResult(stacked=stacked, flux_jy=measured["flux_jy"],
                        flux_err_jy=measured["flux_err_jy"], n_positions=n_positions,
                        n_visibilities=measured["n_visibilities"], positions=pos, options=options,
                        uncovered=uncovered, flux_imag_jy=measured["flux_imag_jy"],
                        partition_sums={p.name: s[:_NSUMS].tolist()
                                        for p, s in zip(active, sums)},
-                       _keepalive=keepalive)
+                       flux_err_empirical_jy=measured["flux_err_empirical_jy"],
+                       weight_scale=measured["weight_scale"],
+                       noise_estimate=measured["noise_estimate"])

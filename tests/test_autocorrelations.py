@@ -112,3 +112,28 @@ def test_subtract_leaves_autocorrelations_alone(lwa, tmp_path):
     tol = 2 * np.finfo(np.float32).eps * np.abs(vb[:, ~auto]).max()
     np.testing.assert_allclose(diff, 1000.0, atol=tol)
     assert np.median(np.abs(diff - 1000.0)) < 1e-3
+
+
+def test_cli_leaves_autocorrelations_out_unless_asked(lwa, tmp_path, capsys):
+    import json
+
+    from xstack.cli import main
+
+    ms, store = lwa
+    cat = _phase_centre_catalog(store)
+    cat_path = tmp_path / "centre.ecsv"
+    cat.write(cat_path)
+    args = ["uvstack", str(store), str(cat_path), None, "--weighting", "none",
+            "--primary-beam", "none", "--json", "--no-progress"]
+    got = {}
+    for flag in ([], ["--autocorrelations"]):
+        out = tmp_path / f"s{len(flag)}.zarr"
+        assert main([str(out) if a is None else a for a in args] + flag) == 0
+        cap = capsys.readouterr()
+        got[bool(flag)] = json.loads(cap.out)["flux_jy"]
+        # warnings (here: WEIGHT = 1 against the data's own scatter) as one-line messages
+        assert "UserWarning" not in cap.err and "warnings.warn" not in cap.err
+        assert any(line.startswith("warning: ") and "--errors" in line
+                   for line in cap.err.splitlines())
+    assert got[False] == pytest.approx(_casacore_mean(ms, cross_only=True), rel=1e-5)
+    assert got[True] == pytest.approx(_casacore_mean(ms, cross_only=False), rel=1e-5)

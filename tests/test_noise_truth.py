@@ -319,3 +319,27 @@ def test_disc_catalog_and_alma_mosaic_match_the_truth(vla):
         res = estimate_noise(data, pos, method=method, realizations=200, seed=6,
                              weighting="pb")
         _check(res, tr, f"mosaic {method}")
+
+
+def test_analytic_noise_measured_from_the_data_when_the_weights_lie(vla):
+    """WEIGHT x 100 (as uncalibrated data have): the weight-based analytic noise is 10x too
+    small, the one from the visibilities' own scatter matches the brute-force truth, and a
+    warning says so (issue 10, item 2: 'the analytic noise does the same')."""
+    tr = _truth(vla, "none", 400)
+    lying = {}
+    for name, ds in vla["data"].items():
+        new = ds.copy()
+        new["WEIGHT"] = ds["WEIGHT"] * np.float32(100.0)
+        lying[name] = new
+    pos = (np.degrees(vla["ra"]), np.degrees(vla["dec"]))
+    with pytest.warns(UserWarning, match="not 1/sigma"):
+        ana = estimate_noise(lying, pos, method="analytic", weighting="none")
+    assert ana.noise_jy == pytest.approx(tr["truth"] / 10, rel=0.1)
+    assert ana.extra["noise_empirical_jy"] == pytest.approx(tr["truth"], rel=0.1)
+    # honest weights: both agree, no warning
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        honest = estimate_noise(vla["data"], pos, method="analytic", weighting="none")
+    assert honest.extra["noise_empirical_jy"] == pytest.approx(honest.noise_jy, rel=0.1)

@@ -48,6 +48,9 @@ MAD_TO_SIGMA = 1.482602218505602
 #: Fewest difference pairs for an estimate of one (baseline, correlation); below it the
 #: estimate is NaN (relative error of sigma^2 from 16 pairs ~ 40 %, from 100 pairs ~ 16 %).
 MIN_PAIRS = 16
+#: Relative difference between an error from the weights and one from the measured noise
+#: above which a stage warns that the weights are not 1/sigma^2 of the data
+EMPIRICAL_TOLERANCE = 0.2
 #: The MAD of a (baseline, correlation) uses at most about this many pairs, evenly spread
 #: over the block (sigma^2 then to ~2.5 %; the medians are most of the cost)
 MAX_PAIRS = 4096

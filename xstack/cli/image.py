@@ -46,6 +46,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="mosaic: NaN where no pointing's primary beam reaches this power "
                         "(default the beam's cutoff, 0.1)")
     p.add_argument("--png", action="store_true", help="also write OUT.png (quick-look)")
+    p.add_argument("--autocorrelations", action="store_true",
+                   help="image autocorrelations too (default: left out; they measure system "
+                        "power, not the sky)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -115,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     common = dict(size=args.size, cell_arcsec=args.cell, weighting=args.weighting,
                   robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
                   epsilon=args.epsilon, partitions=args.partition,
-                  progress=not args.no_progress)
+                  progress=not args.no_progress, autocorrelations=args.autocorrelations)
     if args.pb_cutoff is not None and not 0 < args.pb_cutoff < 1:
         raise XstackError("--pb-cutoff must be between 0 and 1")
     if not Path(args.data).exists():

@@ -51,6 +51,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--profile-png", help="uv-profiles of the realisations (PNG; mc/random)")
     p.add_argument("--profile-bins", type=int, default=20)
     p.add_argument("--table", help="per-realisation values (ECSV)")
+    p.add_argument("--image-corrected", choices=("yes", "no"), default=None,
+                   help="image domain: whether the image is primary-beam corrected (default: "
+                        "its header's XSPBCOR); an uncorrected image is divided by its beam")
+    p.add_argument("--autocorrelations", action="store_true",
+                   help="include autocorrelations (default: left out; they measure system "
+                        "power, not the sky)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -87,7 +93,9 @@ def run(args: argparse.Namespace) -> int:
             pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
             field_radius_arcsec=args.field_radius, engine=args.engine,
             profile_bins=args.profile_bins if args.profile_png else 0,
-            progress=not args.no_progress and sys.stderr.isatty(), region=args.region)
+            progress=not args.no_progress and sys.stderr.isatty(), region=args.region,
+            image_corrected=None if args.image_corrected is None else args.image_corrected == "yes",
+            autocorrelations=args.autocorrelations)
     for w in caught:
         if issubclass(w.category, UserWarning):
             print(f"warning: {w.message}", file=sys.stderr)
@@ -113,6 +121,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"noise estimate ({res.method}, {res.realizations} realisations, "
           f"{res.n_positions} positions)")
     print(f"  noise  = {res.noise_jy * uj:.4g} uJy")
+    if "noise_empirical_jy" in res.extra:
+        print(f"  noise from the visibilities' own scatter = "
+              f"{res.extra['noise_empirical_jy'] * uj:.4g} uJy")
     if "optimal_noise_jy" in res.extra:
         print(f"  (optimal inverse-variance weights would give "
               f"{res.extra['optimal_noise_jy'] * uj:.4g} uJy)")

@@ -78,12 +78,12 @@ def first_error(res: Any, errors: str) -> str:
     """Which error the human output leads with: ``weights`` or ``empirical`` (``--errors``).
 
     ``auto`` takes the empirical error when it exists and differs from the weight-based one by
-    more than :data:`xstack.uvstack.stack.EMPIRICAL_TOLERANCE` (the weights are then not
+    more than :data:`xstack._scatter.EMPIRICAL_TOLERANCE` (the weights are then not
     1/sigma^2 of the data, while the scatter of the data is measured), else the weights.
     """
     import math
 
-    from xstack.uvstack.stack import EMPIRICAL_TOLERANCE
+    from xstack._scatter import EMPIRICAL_TOLERANCE
 
     emp = res.flux_err_empirical_jy
     if errors == "weights" or not math.isfinite(emp):

@@ -207,7 +207,8 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
                weighting: str = "natural", robust: float = 0.0, wterm: bool = True,
                pbcor: bool = False, epsilon: float = 1e-6,
                partitions: str | Sequence[str] | None = None, nthreads: int = 0,
-               progress: bool = False) -> tuple[Any, CleanResult]:
+               progress: bool = False, autocorrelations: bool = False
+               ) -> tuple[Any, CleanResult]:
     """Image a store and CLEAN it with major/minor cycles.
 
     Each minor cycle cleans the residual image down to
@@ -229,7 +230,7 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
 
     imager = Imager(data, size=size, cell_arcsec=cell_arcsec, weighting=weighting, robust=robust,
                     wterm=wterm, epsilon=epsilon, partitions=partitions, nthreads=nthreads,
-                    progress=progress)
+                    progress=progress, autocorrelations=autocorrelations)
     stats = imager.dirty_and_psf()
     dirty, psf = stats["dirty"], stats["psf"]
     mask_b = _check(dirty, psf, mask, gain, niter, threshold)

@@ -613,7 +613,8 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
                robust: float = 0.0, wterm: bool = True, pbcor: bool = False, epsilon: float = 1e-6,
                partitions: str | Sequence[str] | None = None, nthreads: int = 0,
                progress: bool = False, mosaic_center: tuple[float, float] | None = None,
-               pb_cutoff: float | None = None) -> ImageResult:
+               pb_cutoff: float | None = None,
+               autocorrelations: bool = False) -> ImageResult:
     """Dirty image and PSF (Stokes I, multi-frequency synthesis) of a store.
 
     Partitions that share a phase centre (e.g. several spectral windows of one pointing) are
@@ -655,6 +656,8 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     pb_cutoff
         Mosaic only: pixels where no pointing's primary beam reaches this power are NaN
         (default: the telescope beam's cutoff, 0.1).
+    autocorrelations
+        Image autocorrelation baselines too (default: left out, they do not measure the sky).
 
     Returns
     -------
@@ -664,10 +667,11 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     if len(group_pointings(parts)) > 1:
         return make_mosaic(parts, size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                            robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
-                           progress=progress, center=mosaic_center, pb_cutoff=pb_cutoff)
+                           progress=progress, center=mosaic_center, pb_cutoff=pb_cutoff,
+                           autocorrelations=autocorrelations)
     imager = Imager(dict(parts), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                     robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
-                    progress=progress)
+                    progress=progress, autocorrelations=autocorrelations)
     stats = imager.dirty_and_psf()
     return imager.result(stats["dirty"], stats["psf"], stats, pbcor=pbcor)
 
@@ -689,7 +693,8 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
                 epsilon: float = 1e-6, partitions: str | Sequence[str] | None = None,
                 nthreads: int = 0, progress: bool = False,
                 center: tuple[float, float] | None = None,
-                pb_cutoff: float | None = None) -> ImageResult:
+                pb_cutoff: float | None = None,
+                autocorrelations: bool = False) -> ImageResult:
     """Linear mosaic of the pointings of a store on one SIN grid (primary-beam corrected).
 
     Each pointing p (the partitions sharing a phase centre) is imaged on the common grid,
@@ -736,7 +741,8 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
     for pc, members in groups:
         imager = Imager(dict(members), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                         robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
-                        progress=progress, image_center=center)
+                        progress=progress, image_center=center,
+                        autocorrelations=autocorrelations)
         try:
             st = imager.dirty_and_psf()
         except XstackError as exc:  # a fully flagged pointing adds nothing

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ import numpy as np
 
 from xstack._antenna import MIN_ROWS_PER_ANTENNA
 from xstack._json import finite_or_none
+from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam, standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn, read_catalog
 from xstack.errors import XstackError
@@ -170,13 +172,33 @@ class _Pointing:
         return float(self.beam.radius_at(max(self.beam.cutoff, 1e-3), float(self.freq.max())))
 
 
-def _blocks(pt: _Pointing, uvmin, uvmax):
-    """(uvw, vis_w, wsum) per block with the uv cut applied."""
+def _blocks(pt: _Pointing, uvmin, uvmax, empirical: bool = False):
+    """(uvw, vis_w, wsum, wvar) per block with the uv cut applied.
+
+    ``wvar`` (with ``empirical``; else None): sum over the parallel hands of W^2 sigma^2 per
+    (row, channel), sigma^2 the noise measured from the block's own visibilities
+    (:func:`xstack._scatter.noise_model`: scatter of neighbouring channels or integrations
+    per baseline and correlation) -- Var(sum W Re V) whatever the weights' scale.
+    """
+    nb = pt.ds.sizes["baseline_id"]
     for uvw, vis, wt in stokes_i_blocks(pt.ds, pt.name):
+        wvar = None
+        if empirical:
+            from xstack._scatter import noise_model
+
+            shape = (-1, nb) + vis.shape[1:]
+            v4, w4 = vis.reshape(shape), wt.reshape(shape)
+            model = noise_model(v4, w4, ~(w4 > 0))                 # (nbl, npol, 3)
+            a, b = model[None, :, None, :, 0], model[None, :, None, :, 1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cell = np.where(w4 > 0, w4**2 * a + w4 * b, 0.0)  # W^2 (a + b / W)
+            wvar = cell.sum(axis=-1).reshape(vis.shape[:2])
         mask = uv_range_mask(uvw, pt.freq, uvmin, uvmax)
         if mask is not None:
             wt = wt * mask[..., None]
-        yield uvw, np.sum(wt * vis, axis=-1), np.sum(wt, axis=-1)
+            if wvar is not None:
+                wvar = wvar * mask
+        yield uvw, np.sum(wt * vis, axis=-1), np.sum(wt, axis=-1), wvar
 
 
 def _max_q_lambda(pointings: list[_Pointing]) -> float:
@@ -197,7 +219,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                    field_radius_arcsec: float | None = None, profile_bins: int = 0,
                    psf: Any = None, progress: bool = False, engine: str = "auto",
                    antenna_tol_rad: float = kernels.ANTENNA_TOL_RAD,
-                   region: Any = "hull") -> NoiseResult:
+                   region: Any = "hull", image_corrected: bool | None = None,
+                   autocorrelations: bool = False) -> NoiseResult:
     """Estimate the noise and bias of the uv-stacked flux at ``positions``.
 
     Parameters
@@ -272,6 +295,12 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         Largest accepted phase error (radians, at the highest frequency and the farthest
         position) of the per-antenna factorisation; see
         :meth:`xstack.noise.kernels.AntennaLayout.phase_error`.
+    image_corrected
+        Image domain: whether the image is primary-beam corrected (default: its header's
+        ``XSPBCOR``; see :func:`xstack.imstack.io.image_beam`). Corrected and uncorrected
+        images give the same answer.
+    autocorrelations
+        uv domain: include autocorrelation baselines (off: they do not measure the sky).
 
     Returns
     -------
@@ -305,7 +334,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                                     flux=flux, min_separation_arcsec=min_separation_arcsec,
                                     avoid=avoid, seed=seed, weighting=weighting,
                                     primary_beam=primary_beam, pb_cutoff=pb_cutoff,
-                                    field_radius_arcsec=field_radius_arcsec, psf=psf)
+                                    field_radius_arcsec=field_radius_arcsec, psf=psf,
+                                    image_corrected=image_corrected)
     lo, hi = parse_uv_limit(uvmin), parse_uv_limit(uvmax)
     ra_t, dec_t, cat = _positions_from(positions)
     n_t = ra_t.size
@@ -314,7 +344,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         if cat is None or "weight" not in cat.colnames:
             raise XstackError("weighting='column' needs a catalog with a weight column")
         w_t = np.asarray(cat["weight"], dtype=np.float64)
-    pointings = [_Pointing(n, ds, primary_beam, pb_cutoff) for n, ds in as_partitions(data)]
+    pointings = [_Pointing(n, ds, primary_beam, pb_cutoff)
+                 for n, ds in as_partitions(data, autocorrelations)]
     rng = np.random.default_rng(seed)
 
     inside_any = np.zeros(n_t, dtype=bool)
@@ -396,6 +427,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     X_t = np.zeros((len(pointings), n_t))          # per-target data term (1/A coefficients)
     inside_t = np.zeros((len(pointings), n_t), bool)
     var_t = np.zeros((len(pointings), n_t))       # sum_c W_c / A_kc^2 per pointing
+    var_emp_t = np.zeros((len(pointings), n_t))   # the same with measured noise
     wk_t = np.zeros((len(pointings), n_t))        # w_k of the targets per pointing
     wtot_p = np.zeros(len(pointings))
     any_data = False
@@ -421,16 +453,20 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         tsl = slice(starts[-2], starts[-1])
         inside_t[ip] = inside[tsl]
         wchan = np.zeros(pt.freq.size)
+        wvchan = np.zeros(pt.freq.size)
         wbin = np.zeros(max(nbins, 0))
         wk_t[ip] = wk[tsl]
         num_p, num_m_p = np.zeros(G), np.zeros(G)
         prof_p, prof_m_p = np.zeros_like(prof), np.zeros_like(prof)
-        blocks = progress_iter(_blocks(pt, lo, hi), f"noise {pt.name}", enabled=progress)
-        for uvw, vis_w, wsum in blocks:
+        blocks = progress_iter(_blocks(pt, lo, hi, empirical=method == "analytic"),
+                               f"noise {pt.name}", enabled=progress)
+        for uvw, vis_w, wsum, wvar in blocks:
             if not np.any(wsum > 0):
                 continue
             any_data = True
             wchan += wsum.sum(axis=0)
+            if wvar is not None:
+                wvchan += wvar.sum(axis=0)
             if method in ("analytic", "bootstrap"):
                 X_t[ip] += kernels.position_sums(uvw, pt.freq, vis_w, wsum, l[tsl], m[tsl], n1[tsl],
                                                  inv_a[:, tsl])
@@ -455,6 +491,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         num_m += gsum * num_m_p
         den += gsum * wtot
         var_t[ip] = (wchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
+        var_emp_t[ip] = (wvchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
         if b is not None:
             expect += gsum * np.add.reduceat((wchan[:, None] * coef * b).sum(axis=0),
                                              starts[:-1]) * (sizes > 0)
@@ -484,6 +521,16 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
             noise, extra_a = _analytic_noise(var_t, inside_t, wtot_p, wk_t)
             n_used = int(extra_a.pop("_n_used"))
             extra.update(extra_a)
+            # the same estimator's noise with the variance measured from the visibilities
+            # (not trusting WEIGHT as 1/sigma^2), as xstack.uvstack's flux_err_empirical_jy
+            emp, _ = _analytic_noise(var_emp_t, inside_t, wtot_p, wk_t)
+            extra["noise_empirical_jy"] = emp
+            if np.isfinite(emp) and noise > 0 and abs(emp / noise - 1.0) > EMPIRICAL_TOLERANCE:
+                warnings.warn(
+                    f"analytic noise from WEIGHT ({noise:.3g} Jy) and from the visibilities' "
+                    f"own scatter ({emp:.3g} Jy) differ by a factor {emp / noise:.3g}: the "
+                    "weights are not 1/sigma^2 of the data; trust noise_empirical_jy (or a "
+                    "random/mc estimate)", stacklevel=2)
             return NoiseResult("analytic", noise, None, 0, np.zeros(0), None,
                                target_flux, n_used, extra=extra)
         counts = np.stack([np.bincount(rng.integers(0, n_t, n_t), minlength=n_t)

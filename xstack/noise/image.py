@@ -113,10 +113,12 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
             raise XstackError(f"{info.name}: no finite pixel inside the primary beam")
         sigma_map = float(1.4826 * np.median(np.abs(finite - np.median(finite))))
         sig_k = sigma_map / atten(ra_u, dec_u)
-        noise = float(1.0 / np.sqrt(np.sum(1.0 / sig_k**2)))
+        # the noise of the estimator actually used (weights w_u), as in the uv domain; the
+        # inverse-variance optimum (eq. 6) for comparison
         wn = w_u / w_u.sum()
+        noise = float(np.sqrt(np.sum(wn**2 * sig_k**2)))
         extra.update({"sigma_map_jy_per_beam": sigma_map,
-                      "estimator_noise_jy": float(np.sqrt(np.sum(wn**2 * sig_k**2)))})
+                      "optimal_noise_jy": float(1.0 / np.sqrt(np.sum(1.0 / sig_k**2)))})
         return NoiseResult("analytic", noise, None, 0, np.zeros(0), None, target, n,
                            domain="image", extra=extra)
     if method == "bootstrap":

@@ -28,6 +28,7 @@ from astropy.table import Table
 
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
+from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack._select import parallel_hand_mask, sky_correlations
 from xstack.beams import standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, parse_distance, radec_to_lmn, read_catalog
@@ -49,9 +50,6 @@ _NSUMS = kernels.NSUMS
 #: Measure the visibility noise per block for ``flux_err_empirical_jy`` (benchmarks switch
 #: it off to time what it costs; the error is then NaN)
 _EMPIRICAL_SUMS = True
-#: Relative difference of the weight-based and the measured flux error above which
-#: :func:`uvstack` warns (the weights are then not 1/sigma^2 of the data)
-EMPIRICAL_TOLERANCE = 0.2
 
 
 @dataclass

@@ -286,3 +286,29 @@ def test_targets_beyond_the_first_null_never_enter_a_pointing():
     alone = estimate_noise(ds, (np.degrees(ra[:1]), np.degrees(dec[:1])), method="analytic",
                            primary_beam="airy", pb_cutoff=0.0)
     assert with_sidelobes.noise_jy == pytest.approx(alone.noise_jy, rel=1e-12)
+
+
+def test_every_method_counts_the_positions_uvstack_uses():
+    """One rule for 'inside the field' (issue 11, item 8): a target outside every pointing
+    is left out by bootstrap as by the other methods and by uvstack (bootstrap used to
+    resample it and report it among its positions)."""
+    import xarray as xr
+    from astropy.table import Table
+
+    from xstack.uvstack.stack import uvstack
+
+    ds, _, _ = noise_field(5)
+    ra, dec = _targets(n=20, seed=2)
+    far_ra, far_dec = np.append(ra, CENTRE[0]), np.append(dec, CENTRE[1] + np.radians(3.0))
+    pos_all = (np.degrees(far_ra), np.degrees(far_dec))
+    counts = {m: estimate_noise(ds, pos_all, method=m, realizations=20).n_positions
+              for m in ("analytic", "random", "bootstrap")}
+    with pytest.warns(UserWarning, match="lie in no pointing"):
+        ref = uvstack(xr.DataTree.from_dict({"/p": ds}),
+                      Table({"ra": pos_all[0], "dec": pos_all[1]}), smearing="none")
+    assert counts == {"analytic": 20, "random": 20, "bootstrap": 20} and ref.n_positions == 20
+    # and the bootstrap resamples exactly the targets inside: as without the far one
+    a = estimate_noise(ds, pos_all, method="bootstrap", realizations=30, seed=4)
+    b = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="bootstrap",
+                       realizations=30, seed=4)
+    np.testing.assert_allclose(a.values, b.values, rtol=1e-12)

@@ -53,6 +53,23 @@ def radec_to_lmn(ra: Any, dec: Any, ra0: float, dec0: float) -> tuple[np.ndarray
     return l, m, n, n_minus_1
 
 
+def mean_direction(ra: Any, dec: Any) -> tuple[float, float] | None:
+    """Direction (ra, dec) of the mean unit vector of the given directions, radians.
+
+    None when the unit vectors (nearly) cancel (directions spread over the whole sky): the
+    caller decides what that means (an error, or a fallback).
+    """
+    ra = np.atleast_1d(np.asarray(ra, dtype=np.float64))
+    dec = np.atleast_1d(np.asarray(dec, dtype=np.float64))
+    cd = np.cos(dec)
+    v = np.array([np.sum(cd * np.cos(ra)), np.sum(cd * np.sin(ra)), np.sum(np.sin(dec))])
+    norm = float(np.linalg.norm(v))
+    if not norm > 1e-9 * max(ra.size, 1):
+        return None
+    v /= norm
+    return float(np.mod(np.arctan2(v[1], v[0]), 2 * np.pi)), float(np.arcsin(np.clip(v[2], -1, 1)))
+
+
 def lm_to_radec(l: Any, m: Any, ra0: float, dec0: float) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of :func:`radec_to_lmn` for the near hemisphere (n >= 0). Radians."""
     l = np.asarray(l, dtype=np.float64)

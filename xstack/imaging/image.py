@@ -678,14 +678,13 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
 
 def mean_direction(centres: Sequence[tuple[float, float]]) -> tuple[float, float]:
     """(ra, dec) radians of the normalised mean unit vector of ``centres`` (radians)."""
+    from xstack.coords import mean_direction as _mean
+
     c = np.asarray(centres, dtype=np.float64)
-    xyz = np.column_stack([np.cos(c[:, 1]) * np.cos(c[:, 0]), np.cos(c[:, 1]) * np.sin(c[:, 0]),
-                           np.sin(c[:, 1])]).sum(axis=0)
-    norm = float(np.linalg.norm(xyz))
-    if not norm > 1e-12:
+    out = _mean(c[:, 0], c[:, 1])
+    if out is None:
         raise XstackError("the pointings have no mean direction; give mosaic_center")
-    xyz /= norm
-    return float(math.atan2(xyz[1], xyz[0]) % (2 * math.pi)), float(math.asin(xyz[2]))
+    return out
 
 
 def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,

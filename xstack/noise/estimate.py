@@ -533,12 +533,16 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                     "random/mc estimate)", stacklevel=2)
             return NoiseResult("analytic", noise, None, 0, np.zeros(0), None,
                                target_flux, n_used, extra=extra)
-        counts = np.stack([np.bincount(rng.integers(0, n_t, n_t), minlength=n_t)
+        # resample the targets that enter the stack (inside some pointing), as many as there
+        # are: the same positions, and the same count, as every other method and uvstack use
+        idx_in = np.flatnonzero(inside_any)
+        n_in = idx_in.size
+        counts = np.stack([np.bincount(idx_in[rng.integers(0, n_in, n_in)], minlength=n_t)
                            for _ in range(realizations)])
         vals = np.array([_combine_targets(X_t, inside_t, wtot_p, wk_t, c) for c in counts])
         return NoiseResult("bootstrap", float(np.std(vals, ddof=1)),
                            float(np.mean(vals) - target_flux), realizations, vals, None,
-                           target_flux, n_t, extra=extra)
+                           target_flux, n_in, extra=extra)
 
     dens = np.where(den > 0, den, np.nan)
     target_flux = float(num[-1] / dens[-1])

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from xstack.coords import angular_separation, lm_to_radec
+from xstack.coords import angular_separation, lm_to_radec, mean_direction, radec_to_lmn
 from xstack.errors import XstackError
 
 ARCSEC = np.pi / 180.0 / 3600.0
@@ -31,26 +31,12 @@ def _chord(angle: float) -> float:
 def _uniform_in_union(n: int, centres: np.ndarray, radii: np.ndarray,
                       rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """``n`` points uniform on the sphere inside the union of discs (centres (P, 2) rad)."""
-    area = 1.0 - np.cos(radii)
-    cxyz = _xyz(centres[:, 0], centres[:, 1])
     out_ra, out_dec = [], []
     got = 0
     while got < n:
         m = int(1.5 * (n - got)) + 16
-        p = rng.choice(len(radii), size=m, p=area / area.sum())
-        cos_t = 1.0 - rng.uniform(size=m) * area[p]
-        sin_t = np.sqrt(np.clip(1.0 - cos_t**2, 0.0, None))
-        phi = rng.uniform(0.0, 2 * np.pi, size=m)
-        ra = np.empty(m)
-        dec = np.empty(m)
-        for q in np.unique(p):
-            sel = p == q
-            ra[sel], dec[sel] = lm_to_radec(sin_t[sel] * np.sin(phi[sel]),
-                                            sin_t[sel] * np.cos(phi[sel]),
-                                            centres[q, 0], centres[q, 1])
-        xyz = _xyz(ra, dec)
+        ra, dec, cover = _mixture_draw(m, centres, radii, rng)
         # accept with probability 1 / (number of discs covering the point): uniform on the union
-        cover = (xyz @ cxyz.T >= np.cos(radii)[None, :] - 1e-15).sum(axis=1)
         keep = rng.uniform(size=m) * np.maximum(cover, 1) < 1.0
         out_ra.append(ra[keep])
         out_dec.append(dec[keep])
@@ -167,13 +153,11 @@ HULL_MIN_TARGETS = 10
 
 
 def _mean_direction(ra: np.ndarray, dec: np.ndarray) -> tuple[float, float]:
-    v = _xyz(np.asarray(ra, float), np.asarray(dec, float)).sum(axis=0)
-    norm = float(np.linalg.norm(v))
-    if norm < 1e-9 * max(len(np.atleast_1d(ra)), 1):
+    c = mean_direction(ra, dec)
+    if c is None:
         raise XstackError("the positions spread over the whole sky: no tangent plane holds them "
                           "(give --region beam or a polygon / mask)")
-    v /= norm
-    return float(np.mod(np.arctan2(v[1], v[0]), 2 * np.pi)), float(np.arcsin(np.clip(v[2], -1, 1)))
+    return c
 
 
 def _gnomonic(ra: np.ndarray, dec: np.ndarray, ra0: float, dec0: float
@@ -183,13 +167,7 @@ def _gnomonic(ra: np.ndarray, dec: np.ndarray, ra0: float, dec0: float
     Great circles are straight lines in this projection, so a convex polygon there is a
     spherical convex polygon; it is exact at the poles and across RA = 0/360.
     """
-    ra = np.asarray(ra, dtype=np.float64)
-    dec = np.asarray(dec, dtype=np.float64)
-    dra = ra - ra0
-    cd = np.cos(dec)
-    l = cd * np.sin(dra)
-    m = np.sin(dec) * np.cos(dec0) - cd * np.sin(dec0) * np.cos(dra)
-    n = np.sin(dec) * np.sin(dec0) + cd * np.cos(dec0) * np.cos(dra)
+    l, m, n, _ = radec_to_lmn(ra, dec, ra0, dec0)
     ok = n > 1e-6
     nn = np.where(ok, n, 1.0)
     return l / nn, m / nn, ok

@@ -31,7 +31,14 @@ from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack._select import parallel_hand_mask, sky_correlations
 from xstack.beams import standard_beam
-from xstack.coords import SPEED_OF_LIGHT, angular_separation, parse_distance, radec_to_lmn, read_catalog
+from xstack.coords import (
+    SPEED_OF_LIGHT,
+    angular_separation,
+    mean_direction,
+    parse_distance,
+    radec_to_lmn,
+    read_catalog,
+)
 from xstack.errors import XstackError
 from xstack.schema import default_time_chunk, iter_partitions, open_store
 from xstack.uvstack import kernels
@@ -654,16 +661,6 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
     return out, sums
 
 
-def _mean_direction(ra: np.ndarray, dec: np.ndarray) -> tuple[float, float]:
-    """Mean of unit vectors (radians in, radians out): the stacked dataset's phase centre."""
-    x = np.mean(np.cos(dec) * np.cos(ra))
-    y = np.mean(np.cos(dec) * np.sin(ra))
-    z = np.mean(np.sin(dec))
-    if np.hypot(np.hypot(x, y), z) < 1e-12:
-        return float(ra[0]), float(dec[0])
-    return float(np.mod(np.arctan2(y, x), 2 * np.pi)), float(np.arctan2(z, np.hypot(x, y)))
-
-
 # --- public API ---------------------------------------------------------------------------
 
 def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: Any = "auto",
@@ -855,7 +852,10 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     used_pos = np.zeros(npos, dtype=bool)
     for p in active:
         used_pos |= p.used & (p.weight > 0)
-    center = _mean_direction(ra[used_pos], dec[used_pos])
+    # the stacked dataset's phase centre: the positions' mean direction (the first position
+    # if they cancel)
+    center = mean_direction(ra[used_pos], dec[used_pos]) or \
+        (float(ra[used_pos][0]), float(dec[used_pos][0]))
     worst = max(float(p.smearing_loss.max(initial=0.0)) for p in active)
     if worst > _smearing.WARN_LOSS:
         warnings.warn(f"smearing costs up to {100 * worst:.0f}% of a position's flux (corrected "

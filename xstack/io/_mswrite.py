@@ -5,6 +5,20 @@ managers, whose UVW column is labelled J2000 (``default_ms`` alone labels it ITR
 DATA out and FLAG/WEIGHT/SIGMA variable-shaped), and fills the subtables CASA needs
 (ANTENNA, FEED, FIELD, OBSERVATION, POLARIZATION, SPECTRAL_WINDOW, DATA_DESCRIPTION,
 PROCESSOR, STATE, SOURCE, HISTORY, POINTING). Nothing here knows about zarr or xarray.
+
+What CASA needs beyond the MS definition was found by comparing with MSs that CASA 6.7 writes
+itself (``simulator``) and running ``listobs``/``tclean`` on the results
+(``tests/test_export_casa.py``, ``docs/io.md``):
+
+* every STATE_ID of the main table is a row of STATE, or all are -1 and STATE is empty.
+  CASA's ``MSMetaData`` (listobs, tclean's intent maps) indexes its state -> intent table
+  with STATE_ID without a bounds check as soon as STATE has a row, so STATE_ID = -1 beside a
+  STATE row reads past a vector: listobs then segfaults or aborts (``std::bad_alloc``) in
+  some runs and not others.
+* SOURCE has the optional columns REST_FREQUENCY, SYSVEL and TRANSITION that CASA writes,
+  each cell defined with NUM_LINES elements (no line known: NUM_LINES = 0, empty cells).
+* no array cell a CASA reader visits is left undefined (OBSERVATION LOG and SCHEDULE hold
+  empty arrays).
 """
 
 from __future__ import annotations
@@ -30,6 +44,15 @@ STOKES_CODES = {name: code for code, name in STOKES_NAMES.items()}
 
 #: Target bytes of one tile of the big columns (casacore's usual choice is ~1 MB).
 TILE_BYTES = 1024 * 1024
+
+#: SOURCE columns that CASA writes although the MS definition makes them optional.
+SOURCE_LINE_COLUMNS = ("REST_FREQUENCY", "SYSVEL", "TRANSITION")
+
+#: OBS_MODE of the STATE rows written for the STATE_IDs of the main table.
+DEFAULT_OBS_MODE = "OBSERVE_TARGET#ON_SOURCE"
+
+#: Rows of STATE_ID read per call when :func:`write_subtables` looks for the ids in use.
+_ID_SCAN_ROWS = 4 * 1024**2
 
 
 def corr_products(pols: Sequence[str]) -> np.ndarray:
@@ -163,6 +186,33 @@ def _subtable(ms_path: str, name: str, extra_desc: dict | None = None) -> Any:
     return pt.table(path, readonly=False, ack=False)
 
 
+def used_state_ids(ms_path: str | os.PathLike) -> int:
+    """Number of STATE rows the main table refers to: max(STATE_ID) + 1, 0 if all are -1.
+
+    Read in slices of :data:`_ID_SCAN_ROWS` rows, so memory stays small for any MS.
+    """
+    import casacore.tables as pt
+
+    top = -1
+    with pt.table(str(ms_path), ack=False) as tab:
+        n = tab.nrows()
+        for r0 in range(0, n, _ID_SCAN_ROWS):
+            ids = tab.getcol("STATE_ID", startrow=r0, nrow=min(_ID_SCAN_ROWS, n - r0))
+            if ids.size:
+                top = max(top, int(ids.max()))
+    return top + 1
+
+
+def _ensure_columns(tab: Any, table_type: str, names: Sequence[str]) -> None:
+    """Add the optional MS columns ``names`` (casacore's standard descriptions) if missing."""
+    import casacore.tables as pt
+
+    full = pt.complete_ms_desc(table_type)
+    for name in names:
+        if name not in tab.colnames():
+            tab.addcols(pt.maketabdesc([{"name": name, "desc": full[name]}]))
+
+
 def _put(tab: Any, values: dict[str, Any]) -> None:
     for col, val in values.items():
         if col not in tab.colnames():
@@ -192,8 +242,13 @@ def write_subtables(
     stations: Sequence[str] | None = None,
     mounts: Sequence[str] | None = None,
     history: str | None = None,
+    n_states: int | None = None,
+    obs_mode: str = DEFAULT_OBS_MODE,
 ) -> None:
     """Fill the subtables of a freshly created MS.
+
+    Call it after the main table's rows are written (unless ``n_states`` is given, the
+    STATE rows are derived from the main table's STATE_IDs).
 
     Parameters
     ----------
@@ -209,6 +264,14 @@ def write_subtables(
         (spectral window id, polarization id) of every DATA_DESCRIPTION row.
     time_range
         (start, end) of the observation, MJD seconds.
+    history
+        Message of the one HISTORY row (none if ``None``).
+    n_states
+        Number of STATE rows; ``None``: max(STATE_ID) + 1 of the main table, i.e. none when
+        every STATE_ID is -1. CASA crashes on a STATE_ID that is not a STATE row while
+        STATE has rows, so the two must agree.
+    obs_mode
+        OBS_MODE (scan intent) of the STATE rows.
     """
     import casacore.tables as pt
 
@@ -308,6 +371,9 @@ def write_subtables(
         tab.putcell("OBSERVER", 0, observer)
         tab.putcell("PROJECT", 0, project)
         tab.putcell("SCHEDULE_TYPE", 0, "")
+        # defined (empty) rather than undefined cells: nothing to trip over for a reader
+        tab.putcell("LOG", 0, np.array([], dtype=str))
+        tab.putcell("SCHEDULE", 0, np.array([], dtype=str))
         tab.putcell("RELEASE_DATE", 0, t0)
         tab.putcell("FLAG_ROW", 0, False)
 
@@ -319,18 +385,23 @@ def write_subtables(
         tab.putcell("MODE_ID", 0, -1)
         tab.putcell("FLAG_ROW", 0, False)
 
+    nstate = used_state_ids(ms_path) if n_states is None else int(n_states)
     with pt.table(os.path.join(ms_path, "STATE"), readonly=False, ack=False) as tab:
-        tab.addrows(1)
-        tab.putcell("SIG", 0, True)
-        tab.putcell("REF", 0, False)
-        tab.putcell("CAL", 0, 0.0)
-        tab.putcell("LOAD", 0, 0.0)
-        tab.putcell("SUB_SCAN", 0, 0)
-        tab.putcell("OBS_MODE", 0, "OBSERVE_TARGET#ON_SOURCE")
-        tab.putcell("FLAG_ROW", 0, False)
+        if nstate > 0:
+            tab.addrows(nstate)
+            _put(tab, {
+                "SIG": np.ones(nstate, dtype=bool),
+                "REF": np.zeros(nstate, dtype=bool),
+                "CAL": np.zeros(nstate),
+                "LOAD": np.zeros(nstate),
+                "SUB_SCAN": np.zeros(nstate, dtype=np.int32),
+                "OBS_MODE": [str(obs_mode)] * nstate,
+                "FLAG_ROW": np.zeros(nstate, dtype=bool),
+            })
 
     # SOURCE is optional in the MS definition but CASA tasks (listobs, tclean) look for it
     with _subtable(ms_path, "SOURCE") as tab:
+        _ensure_columns(tab, "SOURCE", SOURCE_LINE_COLUMNS)
         nspw = len(spws)
         tab.addrows(nf * nspw)
         row = 0
@@ -346,6 +417,10 @@ def write_subtables(
                 tab.putcell("CODE", row, str(f.get("code", "")))
                 tab.putcell("DIRECTION", row, np.asarray(f["phase_center"], dtype=np.float64))
                 tab.putcell("PROPER_MOTION", row, np.zeros(2))
+                # no spectral line known: NUM_LINES = 0 and defined, empty line cells
+                tab.putcell("REST_FREQUENCY", row, np.zeros(0))
+                tab.putcell("SYSVEL", row, np.zeros(0))
+                tab.putcell("TRANSITION", row, np.array([], dtype=str))
                 row += 1
 
     if history:

@@ -173,7 +173,9 @@ def _write_partition(tab: Any, ds: Any, ddid: int, field_id: int, bar: Any, wher
             zeros = np.zeros(n, dtype=np.int32)
             for col in ("FEED1", "FEED2", "ARRAY_ID", "OBSERVATION_ID", "PROCESSOR_ID"):
                 tab.putcol(col, zeros, startrow=r0, nrow=n)
-            tab.putcol("STATE_ID", np.full(n, -1, dtype=np.int32), startrow=r0, nrow=n)
+            # the one STATE row (an on-source target observation), as CASA's simulator writes
+            # it: a STATE_ID of -1 beside a STATE row crashes CASA (see xstack.io._mswrite)
+            tab.putcol("STATE_ID", np.zeros(n, dtype=np.int32), startrow=r0, nrow=n)
             tab.putcol("UVW", uvw[ti, bi], startrow=r0, nrow=n)
             # big columns in batches, so the gathered copies stay small
             batch = max(1, WRITE_BATCH_BYTES // max(1, nchan * npol * vis.itemsize))
@@ -227,11 +229,14 @@ def export_ms(
     The main table gets DATA (VISIBILITY), FLAG, FLAG_ROW (all channels and polarizations
     flagged), WEIGHT_SPECTRUM (WEIGHT), WEIGHT (its mean over channels), SIGMA
     (1/sqrt(WEIGHT)), UVW, TIME, TIME_CENTROID, INTERVAL, EXPOSURE, ANTENNA1/2, FIELD_ID,
-    DATA_DESC_ID and SCAN_NUMBER, with tiled storage managers for the array columns. The
+    DATA_DESC_ID, SCAN_NUMBER and STATE_ID (0: the one STATE row, intent
+    ``OBSERVE_TARGET#ON_SOURCE``), with tiled storage managers for the array columns. The
     subtables ANTENNA, FEED (one row per antenna), FIELD, OBSERVATION, POLARIZATION,
-    SPECTRAL_WINDOW, DATA_DESCRIPTION, SOURCE, PROCESSOR, STATE and HISTORY are filled;
-    POINTING, FLAG_CMD are empty. Phase centres are written as J2000 (= ICRS here).
-    Padding cells of irregular grids are not written.
+    SPECTRAL_WINDOW, DATA_DESCRIPTION, SOURCE (with REST_FREQUENCY, SYSVEL and TRANSITION,
+    NUM_LINES = 0), PROCESSOR, STATE and HISTORY are filled; POINTING and FLAG_CMD are empty
+    (a store does not record where the antennas pointed). The structure is that of the MSs
+    CASA 6.7 writes where CASA relies on it (``docs/io.md``). Phase centres are written as
+    J2000 (= ICRS here). Padding cells of irregular grids are not written.
 
     Raises
     ------
@@ -281,7 +286,7 @@ def export_ms(
             tmp, antenna_names=meta["antenna_names"], antenna_positions=meta["positions"],
             dish_diameters=meta["dish"], telescope_name=telescope, fields=field_rows,
             spws=spw_rows, pol_setups=meta["pols"], data_descriptions=meta["ddids"],
-            time_range=meta["time_range"],
+            time_range=meta["time_range"], n_states=1,
             history=f"xstack {__version__} export_ms from {Path(store).resolve()}")
         # a quick self-check: the MS reopens and has its rows (catches casacore surprises)
         with pt.table(str(tmp), ack=False) as check:

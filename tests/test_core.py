@@ -280,11 +280,15 @@ def test_parse_distance_and_flux():
 
 def test_read_catalog_formats_and_errors(tmp_path):
     path = tmp_path / "cat.csv"
-    path.write_text("RA,Dec,weight\n03:49:10.99,-30:00:00,1\n57.3,-30.1,2\n")
+    path.write_text("RA,Dec,weight\n03:49:10.99,-30:00:00,1\n03:49:12,-30:06:00,2\n")
     cat = read_catalog(path)
     assert cat["ra"][0] == pytest.approx(15 * (3 + 49 / 60 + 10.99 / 3600))
     assert cat["dec"][1] == pytest.approx(-30.1)
-    Table({"ra": [359.5, 360.5], "dec": [0.0, 1.0]}).write(tmp_path / "c.fits")
+    # decimal degrees and sexagesimal mixed in one column are refused (tests/test_catalogs.py)
+    (tmp_path / "mixed.csv").write_text("RA,Dec\n03:49:10.99,-30:00:00\n57.3,-30.1\n")
+    with pytest.raises(XstackError, match="row 2.*mixed"):
+        read_catalog(tmp_path / "mixed.csv")
+    Table({"ra": [359.5, 0.5], "dec": [0.0, 1.0]}).write(tmp_path / "c.fits")
     assert list(read_catalog(tmp_path / "c.fits")["ra"]) == pytest.approx([359.5, 0.5])
     (tmp_path / "bad.csv").write_text("ra,dec\n1,2\nx,3\n")
     with pytest.raises(XstackError, match="row 2"):

@@ -384,13 +384,17 @@ def test_cli_errors_choice_and_json(tmp_path, capsys):
     assert docs[None]["errors"] == "auto" and docs[None]["errors_first"] == "empirical"
     assert doc["flux_err_empirical_jy"] == pytest.approx(10 * doc["flux_err_jy"], rel=0.2)
     assert doc["weight_scale"] == pytest.approx(100, rel=0.4)
-    # human output leads with the chosen error
-    rc, err = _cli_warns(capsys, ["uvstack", str(data), str(catf), str(tmp_path / "h.zarr"),
-                                  "--primary-beam", "none", "--weighting", "none",
-                                  "--no-progress", "--errors", "empirical", *CLI_PLAIN], "err")
+    # human output (the result, on stdout) leads with the chosen error
+    rc, text = _cli_warns(capsys, ["uvstack", str(data), str(catf), str(tmp_path / "h.zarr"),
+                                   "--primary-beam", "none", "--weighting", "none",
+                                   "--no-progress", "--errors", "empirical", *CLI_PLAIN], "out")
     assert rc == 0
-    line = next(x for x in err.splitlines() if x.startswith("stacked flux"))
-    assert f"+- {doc['flux_err_empirical_jy']:.3g} Jy (from the visibility scatter" in line
+    line = next(x for x in text.splitlines() if x.startswith("stacked flux"))
+    from xstack.cli._output import figure
+
+    line_values = (doc["flux_jy"], doc["flux_err_jy"], doc["flux_err_empirical_jy"])
+    lead = figure(doc["flux_jy"], doc["flux_err_empirical_jy"], "Jy", like=line_values)
+    assert f"{lead} (from the visibility scatter" in line
 
 
 # --- the real EVLA MS -----------------------------------------------------------------------

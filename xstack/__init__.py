@@ -76,6 +76,8 @@ _API = {
     "fit_uv": "xstack.fit.uvfit:fit_uv",
     "fit_image": "xstack.fit.imfit:fit_image",
     "estimate_noise": "xstack.noise.estimate:estimate_noise",
+    # inspecting
+    "info": "xstack.info:info",
 }
 
 __all__ = ["__version__", "numba_cache_dir", *_API]

@@ -1,4 +1,8 @@
-"""Progress reporting on stderr: a tqdm bar for dask computations and for plain loops."""
+"""Progress reporting on stderr: a tqdm bar for dask computations and for plain loops.
+
+The command line allows bars only when stderr is a terminal and neither ``-q`` nor
+``--no-progress`` is given (:func:`set_allowed`); library calls show them when asked to.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +15,15 @@ from dask.callbacks import Callback
 from tqdm.auto import tqdm
 
 T = TypeVar("T")
+
+_allowed = True
+
+
+def set_allowed(allowed: bool) -> bool:
+    """Allow (or forbid) every progress bar of this process; returns the previous setting."""
+    global _allowed
+    previous, _allowed = _allowed, bool(allowed)
+    return previous
 
 
 class _TqdmCallback(Callback):
@@ -39,7 +52,7 @@ class _TqdmCallback(Callback):
 @contextlib.contextmanager
 def dask_progress(description: str = "computing", enabled: bool = True) -> Iterator[None]:
     """Show a progress bar on stderr for dask computations run inside the block."""
-    if not enabled:
+    if not (enabled and _allowed):
         yield
         return
     with _TqdmCallback(description):
@@ -48,8 +61,30 @@ def dask_progress(description: str = "computing", enabled: bool = True) -> Itera
 
 def progress_iter(items: Iterable[T], description: str = "", enabled: bool = True,
                   total: int | None = None) -> Iterable[T]:
-    """Wrap an iterable in a tqdm bar on stderr when ``enabled``."""
+    """Wrap an iterable in a tqdm bar on stderr when ``enabled``.
+
+    Where bars are not allowed (:func:`set_allowed`) an asked-for bar is a silent stand-in
+    with the same ``update``/``close`` methods.
+    """
     if not enabled:
         return items
+    if not _allowed:
+        return _SilentBar(items)
     return tqdm(items, desc=description, total=total, file=sys.stderr, leave=False,
                 dynamic_ncols=True)
+
+
+class _SilentBar:
+    """Iterates like the wrapped iterable; ``update`` and ``close`` do nothing."""
+
+    def __init__(self, items: Iterable[Any]) -> None:
+        self._items = items
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter(self._items)
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass

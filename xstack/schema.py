@@ -364,6 +364,64 @@ def validate_store(path: str | os.PathLike) -> dict[str, Any]:
     return attrs
 
 
+class DamagedChunkError(SchemaError):
+    """A chunk of a store that cannot be read or decoded (a damaged store)."""
+
+
+def _describe_chunk(array: Any, key: Any) -> tuple[str, str]:
+    """Where a dask block of a store lies, as far as the (xarray-wrapped) zarr array behind it
+    tells: ``("STORE/PARTITION/VAR (time 0:10, baseline_id 21:42)", "c/0/1/0/0")`` (the
+    time and baseline_id ranges, other dimensions where the block does not span them whole;
+    the chunk file, when the block is one chunk on disk)."""
+    inner = array
+    for _ in range(8):  # xarray's lazy-indexing wrappers around the backend array
+        if not hasattr(inner, "array"):
+            break
+        inner = inner.array
+    zarr_array = getattr(inner, "_array", None)
+    where = str(getattr(zarr_array, "store_path", "") or "a store").removeprefix("file://")
+    slices = key if isinstance(key, tuple) else (key,)
+    if not all(isinstance(s, slice) for s in slices):
+        return f"{where} {key!r}", ""
+    dims = getattr(getattr(zarr_array, "metadata", None), "dimension_names", None) or ()
+    disk = getattr(zarr_array, "chunks", None) or ()
+    shape = getattr(zarr_array, "shape", None) or ()
+    ranges, index = [], []
+    for i, s in enumerate(slices):
+        name = dims[i] if i < len(dims) and dims[i] else f"axis {i}"
+        start = s.start or 0
+        stop = s.stop if s.stop is not None else (shape[i] if i < len(shape) else start)
+        whole = i < len(shape) and start == 0 and stop == shape[i]
+        if name in ("time", "baseline_id") or not whole:
+            ranges.append(f"{name} {start}:{stop}")
+        if i < len(disk) and disk[i] and start % disk[i] == 0 and stop - start <= disk[i]:
+            index.append(str(start // disk[i]))
+    chunk = "c/" + "/".join(index) if slices and len(index) == len(slices) else ""
+    return (f"{where} ({', '.join(ranges)})" if ranges else where), chunk
+
+
+def read_chunk(array: Any, key: Any, asarray: bool = True, lock: Any = None) -> Any:
+    """Read one block of a store-backed dask array (the ``getitem`` of :func:`open_store`).
+
+    Raises
+    ------
+    DamagedChunkError
+        If the chunk cannot be read or decoded (a damaged store): one line naming the store,
+        the variable and the chunk, instead of whatever the codec raised.
+    """
+    from dask.array.core import getter
+
+    try:
+        return getter(array, key, asarray=asarray, lock=lock)
+    except (MemoryError, KeyboardInterrupt, XstackError):
+        raise
+    except Exception as exc:
+        where, chunk = _describe_chunk(array, key)
+        text = " ".join(f"{type(exc).__name__}: {exc}".split())
+        raise DamagedChunkError(f"{where}: cannot be read, the store is damaged ("
+                                + (f"chunk file {chunk}; " if chunk else "") + f"{text})") from None
+
+
 def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None) -> xr.DataTree:
     """Open an xstack store lazily (dask-backed) as an :class:`xarray.DataTree`.
 
@@ -383,8 +441,11 @@ def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None)
     path = Path(path)
     validate_store(path)
     try:
+        # every chunk is read through read_chunk: a chunk that does not decode becomes one
+        # XstackError naming the store, variable and chunk, wherever it is computed
         tree = xr.open_datatree(path, engine="zarr", chunks=dict(chunks or {}),
-                                consolidated=False, zarr_format=3)
+                                consolidated=False, zarr_format=3,
+                                from_array_kwargs={"getitem": read_chunk})
     except Exception as exc:  # zarr/xarray raise many types for damaged stores
         raise SchemaError(f"{path}: cannot be opened as a zarr store ({exc})") from None
     n = 0
@@ -460,6 +521,8 @@ def write_store(
         Called with the computed ``compute_with`` results; the root attributes it returns are
         stored before the store is marked complete.
     """
+    from concurrent.futures import ThreadPoolExecutor
+
     import dask
 
     from xstack._progress import dask_progress
@@ -474,8 +537,14 @@ def write_store(
         writes = [ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
                                              consolidated=False, compute=False)
                   for name, ds in partitions.items()]
-        with dask_progress(description, enabled=progress):
-            results = dask.compute(*writes, *compute_with)
+        # an own thread pool, shut down before a failure leaves this block: no task still
+        # running may write into the temporary after atomic_output has removed it
+        pool = ThreadPoolExecutor(dask.config.get("num_workers", None) or os.cpu_count() or 1)
+        try:
+            with dask_progress(description, enabled=progress), dask.config.set(pool=pool):
+                results = dask.compute(*writes, *compute_with)
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
         root = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
         if final_attrs is not None:
             root.attrs.update(dict(final_attrs(tuple(results[len(writes):]))))

@@ -9,6 +9,12 @@ Each sub-command lives in its own module ``xstack.cli.<name>`` that defines
 
 User mistakes raise :class:`xstack.errors.XstackError`; they are printed as one line
 ``error: ...`` on stderr with exit status 1, never as a traceback.
+
+Every sub-command also gets ``-q/--quiet``, ``-v/--verbose``, ``--log FILE`` and
+``--no-progress`` here, once; what goes to stdout (results, or the one ``--json`` object)
+and what to stderr (messages, warnings, errors, progress bars on a terminal) is decided in
+:mod:`xstack.cli._output`. ``docs/cli.md`` is generated from these parsers
+(``python -m xstack.cli.docs``).
 """
 
 from __future__ import annotations
@@ -21,11 +27,12 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
+from xstack.cli._output import add_common_options, error, session, warn
 from xstack.errors import XstackError
 
 #: Sub-commands in the order ``xstack --help`` lists them.
 COMMANDS = ("convert", "export", "simulate", "image", "subtract", "uvstack", "imstack",
-            "fit", "noise", "demo")
+            "fit", "noise", "info", "demo")
 
 
 def _load(name: str) -> Any | None:
@@ -51,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
         module = _load(name)
         if module is not None:
             sp = module.add_parser(sub)
+            add_common_options(sp)
             sp.set_defaults(_run=module.run)
     return parser
 
@@ -75,28 +83,34 @@ def _json_default(obj: Any) -> Any:
 def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                   file: Any = None, line: str | None = None) -> None:
     """Warnings on the command line: one ``warning: ...`` line on stderr, no source line."""
-    text = " ".join(str(message).split())
-    print(f"warning: {text}", file=sys.stderr if file is None else file)
+    warn(str(message))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``xstack`` console script."""
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:
         parser.print_help(sys.stderr)
         return 2
+    args._argv = argv
     warnings.filterwarnings("ignore", category=RuntimeWarning, module="dask")
     shown = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        status = args._run(args)
-    except XstackError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        with session(args):
+            try:
+                status = args._run(args)
+            except XstackError as exc:
+                error(str(exc))
+                return 1
+            except KeyboardInterrupt:
+                error("interrupted")
+                return 130
+    except XstackError as exc:  # e.g. a --log file that cannot be written
+        error(str(exc))
         return 1
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
     finally:
         warnings.showwarning = shown
     return int(status or 0)

@@ -54,7 +54,20 @@ def run(args: argparse.Namespace) -> int:
     out = convert_ms(args.ms, args.out, datacolumn=args.datacolumn, chunks=chunks,
                      overwrite=args.overwrite, progress=not args.no_progress)
     seconds = time.perf_counter() - t0
+    summary = store_summary(out)
     if args.json:
-        emit_json({**store_summary(out), "source_ms": str(args.ms),
+        emit_json({**summary, "source_ms": str(args.ms),
                    "data_column": args.datacolumn.upper(), "seconds": round(seconds, 3)})
+        return 0
+    from xstack.cli._output import count, detail, result
+    from xstack.cli._output import seconds as fmt_seconds
+
+    parts = summary["partitions"]
+    result(f"wrote {out}: {count(len(parts), 'partition')}, "
+           f"{count(summary['n_visibilities'], 'visibility')} from the "
+           f"{args.datacolumn.upper()} column of {args.ms} in {fmt_seconds(seconds)}")
+    for name, p in parts.items():
+        detail(f"  {name}: field {p['field_name']}, {p['time']} times x {p['baseline_id']} "
+               f"baselines x {p['frequency']} channels x {'/'.join(p['polarization'])}; chunks "
+               f"time={p['chunks']['time']}, baseline_id={p['chunks']['baseline_id']}")
     return 0

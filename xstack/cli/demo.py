@@ -4,7 +4,7 @@ The demo runs the same sub-commands a user would type, prints each command line 
 runs, and ends with a table comparing the injected mean flux of the targets with what
 uv-stacking and image-stacking recover:
 
-1. ``simulate``  a VLA A-configuration scene: 3 bright 5 mJy sources + 50 faint targets
+1. ``simulate``  a VLA A-configuration scene: 3 bright 5 mJy sources + 60 faint targets
 2. ``export`` / ``convert``  round trip through a MeasurementSet
 3. ``image``     dirty image and CLEAN of the bright sources
 4. ``subtract``  the CLEAN model, leaving the residual data set (paper §3.1)
@@ -20,7 +20,6 @@ import contextlib
 import io
 import json
 import shutil
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -65,13 +64,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
-def _xstack(argv: list[str], log: Any) -> dict[str, Any]:
+def _xstack(argv: list[str]) -> dict[str, Any]:
     """Run one xstack sub-command in-process; return its --json output."""
     from xstack.cli import main
+    from xstack.cli._output import say
 
-    print("$ xstack " + " ".join(argv), file=log, flush=True)
-    if argv[0] != "fit":  # the demo prints its own step lines instead of progress bars
-        argv = [*argv, "--no-progress"]
+    say("$ xstack " + " ".join(argv))
+    argv = [*argv, "--no-progress"]  # the demo prints its own step lines instead of bars
     buffer = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(buffer):
@@ -80,7 +79,7 @@ def _xstack(argv: list[str], log: Any) -> dict[str, Any]:
         raise XstackError(f"demo step 'xstack {argv[0]}' failed (exit status {status})")
     text = buffer.getvalue().strip()
     result = json.loads(text) if text else {}
-    print(f"  ({time.perf_counter() - t0:.1f} s)", file=log, flush=True)
+    say(f"  ({time.perf_counter() - t0:.1f} s)")
     return result
 
 
@@ -93,7 +92,9 @@ def run(args: argparse.Namespace) -> int:
             raise XstackError(f"{out} exists (use --overwrite to replace it)")
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    log = sys.stderr if args.json else sys.stdout
+    from xstack.cli._output import say
+
+    # step lines are messages (stderr), the summary is the result (stdout)
     t_start = time.perf_counter()
 
     scene_path = out / "scene.toml"
@@ -102,39 +103,39 @@ def run(args: argparse.Namespace) -> int:
         "sim.zarr", "sim.ms", "sim2.zarr", "image.fits", "residual.zarr", "stacked.zarr",
         "residual_image.fits", "imstack.fits")}
 
-    print("# 1. simulate a VLA scene: bright sources + faint targets", file=log)
-    _xstack(["simulate", str(scene_path), d["sim.zarr"], "--seed", str(args.seed)], log)
+    say("# 1. simulate a VLA scene: bright sources + faint targets")
+    _xstack(["simulate", str(scene_path), d["sim.zarr"], "--seed", str(args.seed)])
     bright = str(out / "sim.bright.ecsv")
     targets = str(out / "sim.targets.ecsv")
 
-    print("# 2. round trip through a MeasurementSet", file=log)
-    _xstack(["export", d["sim.zarr"], d["sim.ms"]], log)
-    _xstack(["convert", d["sim.ms"], d["sim2.zarr"]], log)
+    say("# 2. round trip through a MeasurementSet")
+    _xstack(["export", d["sim.zarr"], d["sim.ms"]])
+    _xstack(["convert", d["sim.ms"], d["sim2.zarr"]])
     identical = _stores_identical(d["sim.zarr"], d["sim2.zarr"])
-    print(f"  zarr -> MS -> zarr identical: {identical}", file=log)
+    say(f"  zarr -> MS -> zarr identical: {identical}")
 
-    print("# 3. image and CLEAN the bright sources", file=log)
+    say("# 3. image and CLEAN the bright sources")
     img = _xstack(["image", d["sim.zarr"], d["image.fits"], "--size", str(IMAGE_SIZE),
-                   "--cell", str(CELL_ARCSEC), "--niter", "500", "--threshold", "0.1mJy", "--png"], log)
+                   "--cell", str(CELL_ARCSEC), "--niter", "500", "--threshold", "0.1mJy", "--png"])
 
-    print("# 4. subtract the CLEAN model: the residual data set", file=log)
+    say("# 4. subtract the CLEAN model: the residual data set")
     model = img.get("files", {}).get("model") or str(out / "image.model.fits")
-    _xstack(["subtract", d["sim.zarr"], model, d["residual.zarr"]], log)
+    _xstack(["subtract", d["sim.zarr"], model, d["residual.zarr"]])
 
-    print("# 5. uv-stack the residual at the target positions", file=log)
-    uv = _xstack(["uvstack", d["residual.zarr"], targets, d["stacked.zarr"]], log)
+    say("# 5. uv-stack the residual at the target positions")
+    uv = _xstack(["uvstack", d["residual.zarr"], targets, d["stacked.zarr"]])
 
-    print("# 6. image the residual and stack image stamps", file=log)
+    say("# 6. image the residual and stack image stamps")
     _xstack(["image", d["residual.zarr"], d["residual_image.fits"], "--size", str(IMAGE_SIZE),
-             "--cell", str(CELL_ARCSEC)], log)
+             "--cell", str(CELL_ARCSEC)])
     im = _xstack(["imstack", d["residual_image.fits"], targets, d["imstack.fits"],
-                  "--weighting", "sigma2"], log)
+                  "--weighting", "sigma2"])
 
-    print("# 7. model fit of the stacked visibilities; Monte Carlo noise and bias", file=log)
-    fit = _xstack(["fit", d["stacked.zarr"], "--model", "point", "--png", str(out / "fit_uv.png")], log)
+    say("# 7. model fit of the stacked visibilities; Monte Carlo noise and bias")
+    fit = _xstack(["fit", d["stacked.zarr"], "--model", "point", "--png", str(out / "fit_uv.png")])
     noise = _xstack(["noise", d["residual.zarr"], targets, "--method", "mc",
                      "--realizations", "20", "--seed", str(args.seed),
-                     "--avoid", bright, "--png", str(out / "noise_mc.png")], log)
+                     "--avoid", bright, "--png", str(out / "noise_mc.png")])
 
     from astropy.table import Table
 
@@ -176,18 +177,23 @@ def _stores_identical(a: str, b: str) -> bool:
 
 
 def _print_summary(s: dict[str, Any], out: Path) -> None:
-    def ujy(x: Any) -> str:
-        return "   n/a" if x is None else f"{1e6 * x:6.2f}"
+    from xstack.cli._output import count, figure, result
 
-    print()
-    print(f"Injected mean target flux: {ujy(s['injected_mean_flux_jy'])} uJy "
-          f"({s['n_positions']} positions)")
-    print(f"  uv-stacking      {ujy(s['uvstack_flux_jy'])} +- {ujy(s['uvstack_flux_err_jy'])} uJy")
-    print(f"  uv point fit     {ujy(s['uvfit_flux_jy'])} +- {ujy(s['uvfit_flux_err_jy'])} uJy")
-    print(f"  image-stacking   {ujy(s['imstack_flux_jy'])} +- {ujy(s['imstack_flux_err_jy'])} uJy/beam")
-    print(f"  Monte Carlo      noise {ujy(s['mc_noise_jy'])} uJy, bias {ujy(s['mc_bias_jy'])} uJy")
-    print(f"MS round trip identical: {s['roundtrip_identical']}; total {s['elapsed_s']} s")
-    print(f"Outputs in {out}/ (images: *.fits, plots: *.png)")
+    like = [s["injected_mean_flux_jy"], s["uvstack_flux_jy"], s["uvstack_flux_err_jy"],
+            s["uvfit_flux_jy"], s["imstack_flux_jy"], s["mc_noise_jy"], s["mc_bias_jy"]]
+
+    def jy(v: Any, e: Any = None, unit: str = "Jy") -> str:
+        return figure(v, e, unit, like=like)
+
+    result(f"Injected mean target flux: {jy(s['injected_mean_flux_jy'])} "
+           f"({count(s['n_positions'] or 0, 'position')})")
+    result(f"  uv-stacking      {jy(s['uvstack_flux_jy'], s['uvstack_flux_err_jy'])}")
+    result(f"  uv point fit     {jy(s['uvfit_flux_jy'], s['uvfit_flux_err_jy'])}")
+    result(f"  image-stacking   "
+           f"{jy(s['imstack_flux_jy'], s['imstack_flux_err_jy'], 'Jy/beam')}")
+    result(f"  Monte Carlo      noise {jy(s['mc_noise_jy'])}, bias {jy(s['mc_bias_jy'])}")
+    result(f"MS round trip identical: {s['roundtrip_identical']}; total {s['elapsed_s']} s")
+    result(f"Outputs in {out}/ (images: *.fits, plots: *.png)")
 
 
 def _to_toml(obj: dict[str, Any]) -> str:

@@ -29,11 +29,16 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     out = export_ms(args.store, args.out, overwrite=args.overwrite, progress=not args.no_progress)
     seconds = time.perf_counter() - t0
-    if args.json:
-        import casacore.tables as pt
+    import casacore.tables as pt
 
-        with pt.table(str(out), ack=False) as tab:
-            nrows = tab.nrows()
+    with pt.table(str(out), ack=False) as tab:
+        nrows = tab.nrows()
+    if args.json:
         emit_json({"output": str(out), "store": str(args.store), "n_rows": int(nrows),
                    "seconds": round(seconds, 3)})
+        return 0
+    from xstack.cli._output import count, result
+    from xstack.cli._output import seconds as fmt_seconds
+
+    result(f"wrote {out}: {count(nrows, 'row')} from {args.store} in {fmt_seconds(seconds)}")
     return 0

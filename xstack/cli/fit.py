@@ -9,6 +9,8 @@ from xstack.errors import XstackError
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    from xstack.cli import _types
+
     p = subparsers.add_parser(
         "fit", help="fit flux (and size) of a stacked source, uv- or image-domain",
         description="Fit a point or circular Gaussian model to a uv-stacked store (weighted "
@@ -17,14 +19,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("stacked", help="stacked store (.zarr, from xstack uvstack) or stamp (.fits, "
                                    "from xstack imstack)")
     p.add_argument("--model", choices=("point", "gaussian"), default="point")
-    p.add_argument("--uvmin", help="uv fit: minimum uv distance (5000m, 23.8klambda)")
-    p.add_argument("--uvmax", help="uv fit: maximum uv distance")
+    p.add_argument("--uvmin", type=_types.uv_distance, metavar="DIST",
+                   help=f"uv fit: minimum uv distance ({_types.DIST_HELP})")
+    p.add_argument("--uvmax", type=_types.uv_distance, metavar="DIST",
+                   help="uv fit: maximum uv distance (as --uvmin)")
     p.add_argument("--binned", action="store_true", help="uv fit: fit the binned uv-profile")
     p.add_argument("--nbins", type=int, default=30,
                    help="uv fit: bins for --binned and the --png uv-profile (30)")
     p.add_argument("--psf", help="image fit: dirty beam FITS (default: the stamp's PSF extension)")
-    p.add_argument("--fit-radius", type=float, metavar="ARCSEC",
-                   help="image fit: use pixels within this radius of the centre")
+    p.add_argument("--fit-radius", type=_types.angle_arcsec, metavar="ANGLE",
+                   help=f"image fit: use pixels within this radius of the centre "
+                        f"({_types.ANGLE_HELP})")
     p.add_argument("--noise-correlation", choices=("psf", "residual", "none"), default="psf",
                    help="image fit: pixel-noise correlation used for the errors (psf)")
     p.add_argument("--png", metavar="PATH",
@@ -84,17 +89,20 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(out)
         return 0
-    print(f"{res.domain}-domain {res.model} fit of {path}")
-    print(f"  flux      = {res.flux_jy:.6g} +- {res.flux_err_jy:.3g} Jy")
+    from xstack.cli._output import figure, result
+
+    result(f"{res.domain}-domain {res.model} fit of {path}")
+    result(f"  flux      = {figure(res.flux_jy, res.flux_err_jy, 'Jy')}")
     if res.model == "gaussian":
-        print(f"  FWHM      = {res.fwhm_arcsec:.4g} +- {res.fwhm_err_arcsec:.3g} arcsec "
-              f"({'resolved' if res.resolved else 'unresolved'}; 95% upper limit "
-              f"{res.fwhm_upper_limit_arcsec:.4g} arcsec)")
+        result(f"  FWHM      = {figure(res.fwhm_arcsec, res.fwhm_err_arcsec, 'arcsec')} "
+               f"({'resolved' if res.resolved else 'unresolved'}; 95% upper limit "
+               f"{figure(res.fwhm_upper_limit_arcsec, unit='arcsec')})")
     if "background_jy_per_beam" in res.extra:
-        print(f"  constant  = {res.extra['background_jy_per_beam']:.4g} +- "
-              f"{res.extra['background_err_jy_per_beam']:.3g} Jy/beam")
+        bg = figure(res.extra["background_jy_per_beam"], res.extra["background_err_jy_per_beam"],
+                    "Jy/beam")
+        result(f"  constant  = {bg}")
     what = "visibilities" if res.domain == "uv" else "pixels"
-    print(f"  chi2/dof  = {res.chi2_reduced:.4g} ({res.n_data} {what})")
+    result(f"  chi2/dof  = {res.chi2_reduced:.4g} ({res.n_data:,} {what})")
     if args.png:
-        print(f"  picture   = {out['png']}")
+        result(f"  picture   = {out['png']}")
     return 0

@@ -12,6 +12,8 @@ from xstack.errors import XstackError
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    from xstack.cli import _types
+
     p = subparsers.add_parser(
         "image", help="make a (CLEANed) Stokes I image of a store",
         description="Image a store with ducc0 (multi-frequency synthesis, Stokes I from the "
@@ -24,9 +26,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("data", help="input store (.zarr)")
     p.add_argument("out", help="output image (.fits)")
     p.add_argument("--size", type=int, required=True, help="image size in pixels (even, >= 32)")
-    p.add_argument("--cell", type=float, required=True, help="pixel size, arcsec")
+    p.add_argument("--cell", type=_types.angle_arcsec, required=True, metavar="ANGLE",
+                   help=f"pixel size ({_types.ANGLE_HELP})")
     p.add_argument("--niter", type=int, default=0, help="CLEAN components (0: dirty image only)")
-    p.add_argument("--threshold", default="0", help="CLEAN threshold flux, e.g. 50uJy (default 0)")
+    p.add_argument("--threshold", type=_types.threshold_jy, default="0", metavar="FLUX",
+                   help="CLEAN threshold, Jy/beam (50uJy, 50uJy/beam, 0.05mJy; a plain number is "
+                        "Jy; default 0)")
     p.add_argument("--gain", type=float, default=0.1, help="CLEAN loop gain (default 0.1)")
     p.add_argument("--algorithm", choices=("hogbom", "clark"), default="hogbom",
                    help="CLEAN minor-cycle algorithm (default hogbom)")
@@ -169,4 +174,23 @@ def run(args: argparse.Namespace) -> int:
             "n_pointings": int(result.header.get("XSMOSAIC", 1)),
             "pb_corrected": bool(result.header.get("XSPBCOR", False)),
         })
+        return 0
+    from xstack.cli._output import count, detail, figure
+    from xstack.cli._output import result as say_result
+
+    n_point = int(result.header.get("XSMOSAIC", 1))
+    kind = ("restored image" if n_components else
+            ("linear mosaic" if n_point > 1 else "dirty image"))
+    pbcor = "primary-beam corrected" if result.header.get("XSPBCOR", False) else "not pb-corrected"
+    say_result(f"wrote {names['image']}: {kind} {result.image.shape[1]} x {result.image.shape[0]}"
+               f" px of {result.cell_arcsec:g} arcsec, {result.weighting} weighting, {pbcor}"
+               + (f", {count(n_point, 'pointing')}" if n_point > 1 else "")
+               + (f", {count(n_components, 'CLEAN component')}" if n_components else ""))
+    say_result(f"  peak {figure(peak, unit='Jy/beam', like=[rms])}, residual rms "
+               f"{figure(rms, unit='Jy/beam', like=[peak])}, beam {result.beam[0]:.2f} x "
+               f"{result.beam[1]:.2f} arcsec, PA {result.beam[2]:.0f} deg")
+    say_result("  beside it: " + ", ".join(str(v) for k, v in names.items() if k != "image"))
+    detail(f"{count(result.n_visibilities, 'visibility')} from "
+           f"{count(len(result.partitions), 'partition')} ({', '.join(result.partitions)}), "
+           f"frequency {figure(result.frequency, unit='Hz')}")
     return 0

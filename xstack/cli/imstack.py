@@ -3,21 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import Any
 
 from xstack.errors import XstackError
 
 
-def _filter_arg(text: str) -> int | str:
-    """``3`` -> central 3 x 3 Fourier cells; ``4500m`` / ``20klambda`` -> a uv distance."""
-    try:
-        return int(text)
-    except ValueError:
-        return text
-
-
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    from xstack.cli import _types
+
     p = subparsers.add_parser(
         "imstack", help="stack image stamps at catalog positions",
         description="Cut a stamp around every catalog position in one or more FITS images "
@@ -50,12 +43,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "fluxes: an uncorrected image is divided by the beam")
     p.add_argument("--pbcor", action="store_true",
                    help="same as --image-corrected no (divide each stamp by the primary beam)")
-    p.add_argument("--mask-radius", type=float, default=None, metavar="ARCSEC",
-                   help="radius of the central mask for sigma_k (default: BMAJ)")
-    p.add_argument("--filter", type=_filter_arg, default=None, metavar="N|DIST",
+    p.add_argument("--mask-radius", type=_types.angle_arcsec, default=None, metavar="ANGLE",
+                   help=f"radius of the central mask for sigma_k ({_types.ANGLE_HELP}; "
+                        "default: BMAJ)")
+    p.add_argument("--filter", type=_types.filter_cells_or_distance, default=None,
+                   metavar="N|DIST",
                    help="low-spatial-frequency FFT filter of the stack (paper §5.3): an odd N "
-                        "zeroes the central N x N Fourier cells; a distance (4500m, 20klambda) "
-                        "zeroes every cell below it")
+                        "zeroes the central N x N Fourier cells; a uv distance (4500m, "
+                        "20klambda; a number with a decimal point is metres) zeroes every cell "
+                        "below it")
     p.add_argument("--cube-format", choices=("zarr", "fits"), default="zarr",
                    help="format of OUT.cube.* (default zarr)")
     p.add_argument("--no-png", action="store_true", help="do not write OUT.png")
@@ -102,11 +98,14 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(summary)
     else:
-        print(f"stacked {summary['n_positions']} positions ({summary['n_stamps']} stamps, "
-              f"{args.method}, weighting {args.weighting}, {summary['subpixel']} alignment)",
-              file=sys.stderr)
-        print(f"flux at the stacking position: {result.flux_jy:.6g} +- {result.flux_err_jy:.3g} "
-              f"{result.stacked.attrs.get('units', 'Jy/beam')}")
+        from xstack.cli._output import count, figure
+        from xstack.cli._output import result as say_result
+
+        unit = str(result.stacked.attrs.get("units", "Jy/beam")).replace(" ", "")
+        say_result(f"stacked flux {figure(result.flux_jy, result.flux_err_jy, unit)} at the "
+                   f"stacking position from {count(summary['n_positions'], 'position')} "
+                   f"({count(summary['n_stamps'], 'stamp')}, {args.method}, weighting "
+                   f"{args.weighting}, {summary['subpixel']} alignment)")
         for kind, path in result.outputs.items():
-            print(f"wrote {kind}: {path}", file=sys.stderr)
+            say_result(f"  wrote {kind}: {path}")
     return 0

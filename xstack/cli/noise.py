@@ -10,6 +10,8 @@ from xstack.errors import XstackError
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
+    from xstack.cli import _types
+
     p = subparsers.add_parser(
         "noise", help="estimate the noise and bias of a uv-stack",
         description="Noise and bias of the uv-stacked flux at the catalog positions (paper "
@@ -23,20 +25,23 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--method", choices=("analytic", "mc", "random", "bootstrap"), default="mc")
     p.add_argument("--realizations", type=int, default=100, help="number of realisations (100)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--flux", help="mc: injected flux (20uJy); default: catalog flux column, "
-                                  "else the stacked target flux")
-    p.add_argument("--min-separation", type=float, metavar="ARCSEC",
+    p.add_argument("--flux", type=_types.flux_jy, metavar="FLUX",
+                   help=f"mc: injected flux ({_types.FLUX_HELP}); default: catalog flux column, "
+                        "else the stacked target flux")
+    p.add_argument("--min-separation", type=_types.separation_arcsec, metavar="ANGLE",
                    help="random positions: minimum distance to targets, --avoid sources and "
-                        "each other (default: 3 synthesized beams)")
+                        f"each other ({_types.ANGLE_HELP}; default: 3 synthesized beams)")
     p.add_argument("--avoid", help="catalog of further positions to avoid (bright sources)")
     p.add_argument("--weighting", choices=("pb", "none", "column"), default="pb")
     p.add_argument("--primary-beam", choices=("auto", "airy", "gaussian", "none"), default="auto")
     p.add_argument("--pb-cutoff", type=float, default=0.1)
-    p.add_argument("--uvmin", help="minimum uv distance (5000m, 23.8klambda)")
-    p.add_argument("--uvmax", help="maximum uv distance")
-    p.add_argument("--field-radius", type=float, metavar="ARCSEC",
-                   help="radius around each pointing for random positions (default: the beam "
-                        "cutoff; --region applies as well)")
+    p.add_argument("--uvmin", type=_types.uv_distance, metavar="DIST",
+                   help=f"minimum uv distance ({_types.DIST_HELP})")
+    p.add_argument("--uvmax", type=_types.uv_distance, metavar="DIST",
+                   help="maximum uv distance (as --uvmin)")
+    p.add_argument("--field-radius", type=_types.angle_arcsec, metavar="ANGLE",
+                   help=f"radius around each pointing for random positions ({_types.ANGLE_HELP}; "
+                        "default: the beam cutoff; --region applies as well)")
     p.add_argument("--region", default="hull", metavar="hull|beam|POLYGON|MASK.fits",
                    help="mc/random: where random positions go, inside the beams: hull (default: "
                         "the targets' footprint, convex hulls of their groups grown by half "
@@ -96,9 +101,11 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress and sys.stderr.isatty(), region=args.region,
             image_corrected=None if args.image_corrected is None else args.image_corrected == "yes",
             autocorrelations=args.autocorrelations)
+    from xstack.cli._output import count, figure, result, warn
+
     for w in caught:
         if issubclass(w.category, UserWarning):
-            print(f"warning: {w.message}", file=sys.stderr)
+            warn(str(w.message))
     files = {}
     if args.png and res.realizations >= 2:
         from xstack.noise.plot import plot_histogram
@@ -117,22 +124,25 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(out)
         return 0
-    uj = 1e6
-    print(f"noise estimate ({res.method}, {res.realizations} realisations, "
-          f"{res.n_positions} positions)")
-    print(f"  noise  = {res.noise_jy * uj:.4g} uJy")
+    keys = ("noise_empirical_jy", "optimal_noise_jy")
+    like = [res.noise_jy, res.bias_jy, res.target_flux_jy, *(res.extra.get(k) for k in keys)]
+
+    def jy(value: float | None) -> str:
+        return figure(value, unit="Jy", like=like)
+
+    result(f"noise estimate ({res.method}, {count(res.realizations, 'realisation')}, "
+           f"{count(res.n_positions, 'position')})")
+    result(f"  noise  = {jy(res.noise_jy)}")
     if "noise_empirical_jy" in res.extra:
-        print(f"  noise from the visibilities' own scatter = "
-              f"{res.extra['noise_empirical_jy'] * uj:.4g} uJy")
+        result(f"  noise from the visibilities' own scatter = {jy(res.extra['noise_empirical_jy'])}")
     if "optimal_noise_jy" in res.extra:
-        print(f"  (optimal inverse-variance weights would give "
-              f"{res.extra['optimal_noise_jy'] * uj:.4g} uJy)")
+        result(f"  (optimal inverse-variance weights would give {jy(res.extra['optimal_noise_jy'])})")
     if res.bias_jy is not None:
-        print(f"  bias   = {res.bias_jy * uj:.4g} uJy")
+        result(f"  bias   = {jy(res.bias_jy)}")
     if res.target_flux_jy is not None:
-        print(f"  target stack = {res.target_flux_jy * uj:.4g} uJy")
+        result(f"  target stack = {jy(res.target_flux_jy)}")
     if "region" in res.extra:
-        print(f"  region: {res.extra['region']}")
+        result(f"  region: {res.extra['region']}")
     for k, v in files.items():
-        print(f"  {k}: {v}")
+        result(f"  {k}: {v}")
     return 0

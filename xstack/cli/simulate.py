@@ -70,4 +70,14 @@ def run(args: argparse.Namespace) -> int:
             "seed": result.seed,
             "scale": result.scale,
         })
+        return 0
+    from xstack.cli._output import count, detail
+    from xstack.cli._output import result as say_result
+
+    say_result(f"wrote {result.store}: {count(len(result.pointings), 'pointing')}, "
+               f"{count(result.n_visibilities, 'visibility')} (seed {result.seed}, "
+               f"scale {result.scale:g})")
+    for k, path in result.catalog_paths.items():
+        say_result(f"wrote {path}: true {k} ({count(len(result.catalogs[k]), 'source')})")
+    detail(f"steps: {', '.join(sorted(result.steps_run))}")
     return 0

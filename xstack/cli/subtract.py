@@ -39,4 +39,12 @@ def run(args: argparse.Namespace) -> int:
                    autocorrelations=args.autocorrelations)
     if args.json:
         emit_json({"output": str(out), "model": str(args.model)})
+        return 0
+    from xstack.cli._output import count, result
+    from xstack.cli.convert import store_summary
+
+    summary = store_summary(out)
+    result(f"wrote {out}: {args.data} minus the model {args.model} "
+           f"({count(len(summary['partitions']), 'partition')}, "
+           f"{count(summary['n_visibilities'], 'visibility')})")
     return 0

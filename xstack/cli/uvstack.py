@@ -11,6 +11,8 @@ from xstack.errors import XstackError
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    from xstack.cli import _types
+
     p = subparsers.add_parser(
         "uvstack", help="uv-stack visibilities at the positions of a catalog",
         usage="xstack uvstack [options] DATA [DATA ...] CATALOG OUT.zarr",
@@ -39,9 +41,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--pb-cutoff", type=float, default=0.1, metavar="X",
                    help="positions with attenuation below X in any channel do not enter a "
                         "pointing (default 0.1)")
-    p.add_argument("--uvmin", default=None, metavar="DIST",
-                   help="smallest uv distance in the flux, e.g. 5000m, 23.8klambda")
-    p.add_argument("--uvmax", default=None, metavar="DIST", help="largest uv distance in the flux")
+    p.add_argument("--uvmin", type=_types.uv_distance, default=None, metavar="DIST",
+                   help=f"smallest uv distance in the flux ({_types.DIST_HELP})")
+    p.add_argument("--uvmax", type=_types.uv_distance, default=None, metavar="DIST",
+                   help="largest uv distance in the flux (as --uvmin)")
     p.add_argument("--polarizations", default="parallel",
                    help="parallel (Stokes I, default), all, or a comma list such as RR,LL")
     p.add_argument("--engine", default="auto", choices=("auto", "antenna", "numba", "numpy", "nufft"),
@@ -146,12 +149,19 @@ def run(args: argparse.Namespace) -> int:
                    "output": str(out), "profile_table": str(ecsv),
                    "profile_png": str(png), "seconds": round(seconds, 3)})
     else:
-        import sys
+        from xstack.cli._output import count, detail, figure, result
 
         errs = {"weights": (res.flux_err_jy, "from WEIGHT"),
                 "empirical": (res.flux_err_empirical_jy, "from the visibility scatter")}
         other = "empirical" if first == "weights" else "weights"
-        print(f"stacked flux {res.flux_jy:.6g} +- {errs[first][0]:.3g} Jy ({errs[first][1]}; "
-              f"{errs[other][1]}: +- {errs[other][0]:.3g} Jy) from {res.n_positions} positions, "
-              f"{res.n_visibilities} visibilities -> {out}", file=sys.stderr)
+        line = (res.flux_jy, res.flux_err_jy, res.flux_err_empirical_jy)
+        other_err = figure(errs[other][0], unit="Jy", like=line).split(" ", 1)
+        result(f"stacked flux {figure(res.flux_jy, errs[first][0], 'Jy', like=line)} "
+               f"({errs[first][1]}; {errs[other][1]}: ± {other_err[0]} {other_err[1]}) from "
+               f"{count(res.n_positions, 'position')}, "
+               f"{count(res.n_visibilities, 'visibility')}")
+        result(f"  wrote {out}, {ecsv}, {png}")
+        detail(f"weighting {args.weighting}, primary beam {args.primary_beam}, "
+               f"engine {args.engine}, {count(len(res.stacked), 'partition')}: "
+               f"{', '.join(sorted(map(str, res.stacked)))}")
     return 0

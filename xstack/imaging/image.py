@@ -23,6 +23,7 @@ from __future__ import annotations
 import fnmatch
 import math
 import os
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -413,6 +414,100 @@ def _cell_from_wcs(wcs: WCS, ny: int, nx: int) -> float:
     return cell
 
 
+# --------------------------------------------------------------------------- uv coverage
+#: Header keyword: dimension of the uv coverage at the image's scale. 2 = a 2-D synthesized
+#: beam; 1 = every visibility on (or so near) one line through the uv origin that the beam
+#: is longer than the image: BMAJ/BMIN then describe no beam.
+UVDIM_KEY = "XSUVDIM"
+#: uv coverage whose second-moment axis ratio (minor / major, the square root of the
+#: eigenvalue ratio) is below this is collinear (to rounding): one baseline in one
+#: integration, or a snapshot of collinear baselines.
+COLLINEAR_RATIO = 1e-6
+
+
+def uv_moments(uvw: np.ndarray, frequency: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Weighted second moments of the uv coverage: [sum w u^2, sum w v^2, sum w u v].
+
+    Parameters
+    ----------
+    uvw : (R, 3) float64
+        Baseline coordinates, metres.
+    frequency : (C,) float64
+        Channel frequencies, Hz.
+    weight : (R, C) float64
+        Imaging weights (0 for samples that do not enter the image).
+
+    Returns
+    -------
+    numpy.ndarray
+        (3,) float64, wavelengths^2 times the weight unit.
+    """
+    from xstack.coords import SPEED_OF_LIGHT
+
+    k2 = (np.asarray(frequency, dtype=np.float64) / SPEED_OF_LIGHT) ** 2
+    wk = np.asarray(weight, dtype=np.float64) @ k2  # (R,): sum over channels of w (f/c)^2
+    u, v = uvw[:, 0], uvw[:, 1]
+    return np.array([wk @ (u * u), wk @ (v * v), wk @ (u * v)])
+
+
+def check_uv_coverage(moments: np.ndarray, parts: Sequence[tuple[str, xr.Dataset]], ny: int,
+                      nx: int, cell_arcsec: float) -> tuple[int, str | None]:
+    """Is there a 2-D synthesized beam? The dimension of the uv coverage and a message.
+
+    The PSF near its peak is ``1 - 2 pi^2 x^T M x`` (x the direction offset in radians, M the
+    weighted mean of (u, v)(u, v)^T in wavelengths, ``moments`` normalised by the sum of the
+    weights), i.e. a Gaussian of sigma = 1 / (2 pi sqrt(eigenvalue)) along each eigenvector.
+
+    * Both eigenvalues 0 (every visibility at u = v = 0): no beam at all, an
+      :class:`~xstack.errors.XstackError`.
+    * Axis ratio sqrt(min / max eigenvalue) below :data:`COLLINEAR_RATIO` (one baseline in
+      one integration, collinear baselines in a snapshot), or a beam major axis so
+      estimated longer than the image: dimension 1 and a one-line message (the image is
+      still the correct dirty image - fringes - but its BMAJ/BMIN describe no beam).
+
+    Returns
+    -------
+    (dimension, message)
+        2 and None for a 2-D beam; 1 and the warning text otherwise.
+    """
+    from xstack.imaging.kernels import FWHM_PER_SIGMA
+
+    m = np.asarray(moments, dtype=np.float64)
+    cov = np.array([[m[0], m[2]], [m[2], m[1]]])
+    evals, evecs = np.linalg.eigh(cov)
+    n_bl = sum(int(np.count_nonzero(np.asarray(ds["baseline_antenna1_id"].values)
+                                    != np.asarray(ds["baseline_antenna2_id"].values)))
+               if "baseline_antenna1_id" in ds.coords else int(ds.sizes.get("baseline_id", 0))
+               for _, ds in parts)
+    n_t = sum(int(ds.sizes.get("time", 0)) for _, ds in parts)
+    n_c = sum(int(ds.sizes.get("frequency", 0)) for _, ds in parts)
+    what = (f"{n_bl} baseline{'' if n_bl == 1 else 's'}, {n_t} integration{'' if n_t == 1 else 's'}, "
+            f"{n_c} channel{'' if n_c == 1 else 's'}")
+    if not (np.all(np.isfinite(evals)) and evals[1] > 0):
+        raise XstackError(f"uv coverage has zero extent ({what}: every visibility at u = v = 0): "
+                          "there is no synthesized beam and nothing to image")
+    ratio = math.sqrt(max(float(evals[0]), 0.0) / float(evals[1]))
+    # position angle (east of north) of the line the uv points lie on
+    eu, ev = evecs[0, 1], evecs[1, 1]
+    pa = (math.degrees(math.atan2(eu, ev)) + 90.0) % 180.0 - 90.0
+    if ratio < COLLINEAR_RATIO:
+        return 1, (f"uv coverage is one-dimensional ({what}, every visibility on one line "
+                   f"through the uv origin at position angle {pa:.1f} deg): the synthesized beam "
+                   "is not 2-D (stripes across the image), so BMAJ/BMIN mean nothing and "
+                   "image-domain stacking or fitting cannot work; stack in the uv-domain")
+    fwhm_major = FWHM_PER_SIGMA / (2 * math.pi * math.sqrt(float(evals[0]))) * 180 / math.pi * 3600
+    extent = max(nx, ny) * float(cell_arcsec)
+    if fwhm_major > extent:
+        fwhm_minor = FWHM_PER_SIGMA / (2 * math.pi * math.sqrt(float(evals[1]))) * 180 / math.pi \
+            * 3600
+        return 1, (f"uv coverage is nearly one-dimensional ({what}, axis ratio {ratio:.2g}, "
+                   f"uv points along position angle {pa:.1f} deg): the synthesized beam "
+                   f"(~{fwhm_major:.3g}\" x {fwhm_minor:.3g}\") is longer than the image "
+                   f"({extent:.3g}\"), so BMAJ/BMIN mean nothing and image-domain stacking or "
+                   "fitting cannot work; stack in the uv-domain")
+    return 2, None
+
+
 # --------------------------------------------------------------------------- the imager
 class Imager:
     """Streams a selection of partitions through ducc0 with fixed imaging weights.
@@ -524,7 +619,9 @@ class Imager:
         var_num = 0.0
         nvis = 0
         fmin, fmax = np.inf, -np.inf
+        moments = np.zeros(3)
         for uvw, freq, w, v, raw in self._iter(True, "imaging"):
+            moments += uv_moments(uvw, freq, w)
             kw = dict(epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads)
             dirty += grid_visibilities(uvw, freq, v, w, self.ny, self.nx, self.cell, **kw)
             psf += grid_visibilities(uvw, freq, np.ones_like(v), w, self.ny, self.nx, self.cell, **kw)
@@ -543,7 +640,7 @@ class Imager:
                 "noise_variance": var_num / sum_w**2,
                 "frequency": sum_wf / sum_w, "n_visibilities": nvis,
                 "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0,
-                "fmin": float(fmin), "fmax": float(fmax)}
+                "fmin": float(fmin), "fmax": float(fmax), "uv_moments": moments / sum_w}
 
     def image_of_model(self, model: np.ndarray) -> np.ndarray:
         """Dirty image of a model image's predicted visibilities (same weights), normalised.
@@ -582,7 +679,18 @@ class Imager:
 
     def result(self, image: np.ndarray, psf: np.ndarray, stats: dict[str, Any],
                pbcor: bool = False) -> ImageResult:
-        """Wrap arrays into an :class:`ImageResult` (beam fit, WCS, header, PB correction)."""
+        """Wrap arrays into an :class:`ImageResult` (beam fit, WCS, header, PB correction).
+
+        The uv coverage is checked first (:func:`check_uv_coverage`): zero extent is an error,
+        a one-dimensional coverage (no 2-D beam within the image) a warning, and the header's
+        ``XSUVDIM`` records which (2 or 1).
+        """
+        uv_dim = 2
+        if "uv_moments" in stats:
+            uv_dim, message = check_uv_coverage(stats["uv_moments"], self.parts, self.ny,
+                                                self.nx, self.cell_arcsec)
+            if message:
+                warnings.warn(message, stacklevel=3)
         major, minor, pa = kernels.fit_psf_beam(psf)
         beam = (float(major * self.cell_arcsec), float(minor * self.cell_arcsec), float(pa))
         ds = self.parts[0][1]
@@ -592,7 +700,8 @@ class Imager:
                              telescope=telescope,
                              extra={"XSWEIGHT": self.weighting, "XSROBUST": self.robust,
                                     "XSSUMW": stats["sum_weights"], "XSWTERM": self.wterm,
-                                    "XSEPSIL": self.epsilon, PBCOR_KEY: bool(pbcor)})
+                                    "XSEPSIL": self.epsilon, PBCOR_KEY: bool(pbcor),
+                                    UVDIM_KEY: (uv_dim, "uv coverage dimension (1: no 2-D beam)")})
         extra: dict[str, Any] = {}
         # the beam travels with every image (OUT.pb.fits), corrected or not
         pb, cutoff = self.primary_beam(stats["frequency"], main_lobe=True)
@@ -737,6 +846,7 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
     cutoff = pb_cutoff
     pointings = []
     imager = None
+    moments = np.zeros(3)
     for pc, members in groups:
         imager = Imager(dict(members), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                         robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
@@ -756,6 +866,7 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
         num += w_p * a_p * st["dirty"]
         den += w_p * a_p * a_p
         psf += w_p * st["psf"]
+        moments += w_p * st["uv_moments"]
         total_w += w_p
         sum_w += st["sum_weights"]
         sum_wf += st["frequency"] * st["sum_weights"]
@@ -776,7 +887,8 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
     # the flat-noise image: corrected mosaic times the effective beam (uniform noise)
     flat = np.where(den > 0, num / np.where(den > 0, den, 1.0) * pb, 0.0)
     stats = {"frequency": sum_wf / sum_w, "sum_weights": sum_w, "n_visibilities": nvis,
-             "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0}
+             "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0,
+             "uv_moments": moments / total_w}
     psf = psf / total_w
     # the header and beam come from the last imager (same grid and centre for every pointing)
     imager.parts = parts

@@ -112,7 +112,7 @@ def test_plot_uv_fit_writes_and_refuses_to_overwrite(tmp_path, gauss_ds):
     assert plot_uv_fit(store, res, png, bins=15) == str(png)
     _assert_png(png)
     before = png.read_bytes()
-    with pytest.raises(XstackError, match="--overwrite"):
+    with pytest.raises(XstackError, match="overwrite=True"):
         plot_uv_fit(store, res, png)
     assert png.read_bytes() == before
     plot_uv_fit(store, res, png, bins=8, overwrite=True)
@@ -168,7 +168,7 @@ def test_plot_image_fit_writes_and_refuses_to_overwrite(tmp_path, stamp_fits):
     assert plot_image_fit(path, res, png, fit_radius_arcsec=6.0) == str(png)
     _assert_png(png)
     before = png.read_bytes()
-    with pytest.raises(XstackError, match="--overwrite"):
+    with pytest.raises(XstackError, match="overwrite=True"):
         plot_image_fit(path, res, png)
     assert png.read_bytes() == before
     # arrays work too, given the PSF

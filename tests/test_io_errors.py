@@ -123,7 +123,7 @@ def test_convert_existing_output(tmp_path, good, capsys):
     out = tmp_path / "o.zarr"
     out.mkdir()
     (out / "precious.txt").write_text("keep me")
-    _fails(convert_ms, (ms, out), "exists .*--overwrite", tmp_path)
+    _fails(convert_ms, (ms, out), "exists .*overwrite=True", tmp_path)
     _cli_fails(["convert", str(ms), str(out)], "exists", capsys, tmp_path)
     assert (out / "precious.txt").read_text() == "keep me"
     convert_ms(ms, out, overwrite=True)
@@ -219,7 +219,7 @@ def test_export_existing_output(tmp_path, good, capsys):
     out = tmp_path / "o.ms"
     out.mkdir()
     (out / "precious.txt").write_text("keep me")
-    _fails(export_ms, (store, out), "exists .*--overwrite", tmp_path)
+    _fails(export_ms, (store, out), "exists .*overwrite=True", tmp_path)
     _cli_fails(["export", str(store), str(out)], "exists", capsys, tmp_path)
     assert (out / "precious.txt").read_text() == "keep me"
     export_ms(store, out, overwrite=True)

@@ -135,7 +135,7 @@ def test_polygon_file_and_beam(tmp_path):
     # a polygon nowhere near the pointing: a clear error naming the option
     far = tmp_path / "far.csv"
     Table({"ra": np.degrees(vra) + 20, "dec": np.degrees(vdec)}).write(far, format="ascii.csv")
-    with pytest.raises(XstackError, match="--region"):
+    with pytest.raises(XstackError, match="change region="):
         estimate_noise(ds, pos, method="random", realizations=3, region=str(far))
     with pytest.raises(XstackError, match="not hull, beam"):
         estimate_noise(ds, pos, method="random", realizations=3, region="nowhere.csv")
@@ -175,12 +175,12 @@ def test_fits_mask_in_galactic_coordinates(tmp_path):
 def test_warnings_for_an_ill_defined_footprint():
     ds, _, _ = noise_field(0, n_ant=6, n_time=4, extent_m=20e3)
     ra, dec = _box(CENTRE, 8.0, 5, seed=1)
-    with pytest.warns(UserWarning, match="only 5 targets.*--region"):
+    with pytest.warns(UserWarning, match="only 5 targets.*region=.beam."):
         estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="random", realizations=3)
     # collinear targets: a hull of no area
     t = np.linspace(-8, 8, 20) * ARCMIN
     ra, dec = _unproject(t, 0.3 * t, *CENTRE)
-    with pytest.warns(UserWarning, match="collinear.*--region"):
+    with pytest.warns(UserWarning, match="collinear.*region=.beam."):
         reg = hull_region(ra, dec)
     # the footprint is then the band of the margin around the line: positions stay on it
     pr, pd = _draw(reg, CENTRE, 30 * ARCMIN, n=500)

@@ -254,9 +254,9 @@ def test_empirical_error_matches_brute_force(kind):
         assert all(not m for m in msgs)  # both errors agree: no warning
         assert all(abs(e / w - 1) < 0.2 for e, w in zip(emp, wts))
     else:
-        # the weight-based error is wrong (10x for x100) and every run warns, naming --errors
+        # the weight-based error is wrong (10x for x100) and every run warns, naming errors
         assert abs(np.mean(wts) / truth - 1) > 0.5
-        assert all(len(m) == 1 and "--errors" in m[0] for m in msgs)
+        assert all(len(m) == 1 and "errors='empirical'" in m[0] for m in msgs)
         if kind == "x100":
             assert np.mean(wts) / truth == pytest.approx(0.1, rel=0.1)
             assert res.weight_scale == pytest.approx(100, rel=0.25)
@@ -324,7 +324,7 @@ def test_single_channel_uses_integrations_else_the_weights():
     ds = make_stack_partition(n_time=40, n_ant=6, n_chan=1, sigma=1.0, seed=1)
     ds["WEIGHT"] = ds["WEIGHT"] * 100
     ones = np.ones(ds.sizes["baseline_id"])
-    with pytest.warns(UserWarning, match="--errors"):
+    with pytest.warns(UserWarning, match="errors='empirical'"):
         res = _stack(ds, cat, _noise(rng, ds["VISIBILITY"].shape, ones))
     assert res.noise_estimate == {"pairs": "integrations", "own": res.n_visibilities,
                                   "pooled": 0, "weights": 0}
@@ -332,7 +332,7 @@ def test_single_channel_uses_integrations_else_the_weights():
     # 8 integrations: 4 pairs per baseline and correlation, fewer than MIN_PAIRS: pooled
     # over the block (15 baselines x 2 correlations x 4 pairs), still ~10x the weights
     ds8 = ds.isel(time=slice(0, 8))
-    with pytest.warns(UserWarning, match="--errors"):
+    with pytest.warns(UserWarning, match="errors='empirical'"):
         res8 = _stack(ds8, cat, _noise(rng, ds8["VISIBILITY"].shape, ones))
     assert res8.noise_estimate["pooled"] == res8.n_visibilities
     assert res8.flux_err_empirical_jy / res8.flux_err_jy == pytest.approx(10, rel=0.3)
@@ -458,7 +458,7 @@ def test_real_evla_empirical_noise_and_error(evla):
     # sqrt(sum w^2 sigma^2) / sum w with the casacore sigma of each visibility's baseline
     ra0, dec0 = (float(x) for x in ds.attrs["phase_center"])
     one = Table({"ra": [np.degrees(ra0)], "dec": [np.degrees(dec0)]})
-    with pytest.warns(UserWarning, match="--errors"):
+    with pytest.warns(UserWarning, match="errors='empirical'"):
         res = uvstack(store, one, weighting="none", primary_beam="none")
     num = sum(np.sum(w.astype(np.float64) ** 2) * s**2 for w, s in wts.values())
     den = sum(np.sum(w.astype(np.float64)) for w, _ in wts.values())
@@ -471,7 +471,7 @@ def test_real_evla_empirical_noise_and_error(evla):
     l, m = rng.uniform(-1e-4, 1e-4, (2, 20))
     ra, dec = lm_to_radec(l, m, ra0, dec0)
     cat = Table({"ra": np.degrees(ra), "dec": np.degrees(dec)})
-    with pytest.warns(UserWarning, match="--errors"):
+    with pytest.warns(UserWarning, match="errors='empirical'"):
         res20 = uvstack(store, cat)
     assert res20.n_positions == 20
     assert res20.flux_err_empirical_jy < res20.flux_err_jy / 100

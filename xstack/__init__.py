@@ -59,6 +59,12 @@ _API = {
     "PrimaryBeam": "xstack.beams:PrimaryBeam",
     "standard_beam": "xstack.beams:standard_beam",
     "XstackError": "xstack.errors:XstackError",
+    "OptionError": "xstack.errors:OptionError",
+    "OutputExistsError": "xstack.errors:OutputExistsError",
+    "NoDataError": "xstack.errors:NoDataError",
+    "SchemaError": "xstack.errors:SchemaError",
+    "XstackWarning": "xstack.errors:XstackWarning",
+    "dish_diameter": "xstack.beams:dish_diameter",
     # simulation
     "Scene": "xstack.sim.scene:Scene",
     "load_scene": "xstack.sim.scene:load_scene",

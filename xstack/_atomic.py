@@ -9,7 +9,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from xstack.errors import XstackError
+from xstack.errors import OutputExistsError, XstackError
 
 
 def _remove(path: Path) -> None:
@@ -23,7 +23,8 @@ def check_output(path: str | os.PathLike, overwrite: bool) -> Path:
     """Fail early, before any work, if ``path`` exists and ``overwrite`` is not set."""
     path = Path(path)
     if (path.exists() or path.is_symlink()) and not overwrite:
-        raise XstackError(f"{path} exists (use --overwrite to replace it)")
+        raise OutputExistsError(f"{path} exists (pass overwrite=True to replace it)",
+                                option="overwrite")
     if not path.parent.exists():
         raise XstackError(f"{path.parent}: output directory does not exist")
     return path
@@ -46,7 +47,8 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False) -> Iterator[
             raise XstackError(f"{path}: nothing was written")
         if path.exists() or path.is_symlink():
             if not overwrite:  # appeared while we worked
-                raise XstackError(f"{path} exists (use --overwrite to replace it)")
+                raise OutputExistsError(f"{path} exists (pass overwrite=True to replace it)",
+                                        option="overwrite")
             trash = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
             os.replace(path, trash)
             os.replace(tmp, path)

@@ -18,7 +18,9 @@ Models (``docs/conventions.md``):
     A = 1 + a x^2 + b x^4 + c x^6 (+ d x^8), x = theta[arcmin] * nu[GHz]; coefficients of the
     tabulated frequency nearest to each channel. Beyond the first null A = 0.
 
-``standard_beam(telescope, dish_diameter)`` picks the telescope's standard model.
+``standard_beam(telescope, dish_diameter)`` picks the telescope's standard model;
+``dish_diameter(ds)`` reads a partition's dish diameter from its data. This module is the one
+home of that vocabulary: :data:`DEFAULT_PB_CUTOFF`, :data:`TELESCOPE_DISH_DIAMETERS`.
 """
 
 from __future__ import annotations
@@ -29,11 +31,72 @@ from typing import Any
 import numpy as np
 from scipy.special import j1
 
+from xstack import _vocabulary
 from xstack.coords import SPEED_OF_LIGHT
-from xstack.errors import XstackError
+from xstack.errors import OptionError, SchemaError
 
-#: Default attenuation below which a position is taken to be outside a pointing.
-DEFAULT_PB_CUTOFF = 0.1
+#: Default attenuation below which a position is taken to be outside a pointing (defined in
+#: the import-free :mod:`xstack._vocabulary` so the command line can use it cheaply).
+DEFAULT_PB_CUTOFF = _vocabulary.DEFAULT_PB_CUTOFF
+
+#: Primary-beam models by name.
+BEAM_MODELS = ("airy", "gaussian", "vla", "none")
+
+#: Physical dish diameters (m) of telescopes by (upper-case) name, for data and images that
+#: do not carry their own (a FITS image's TELESCOP; a partition without DISH_DIAMETER).
+TELESCOPE_DISH_DIAMETERS = {"ALMA": 12.0, "VLA": 25.0, "EVLA": 25.0, "JVLA": 25.0,
+                            "MEERKAT": 13.5, "ATCA": 22.0, "WSRT": 25.0, "GMRT": 45.0,
+                            "SMA": 6.0, "NOEMA": 15.0}
+
+
+def telescope_dish_diameter(telescope: str) -> float:
+    """Physical dish diameter (m) of a telescope known by name.
+
+    Raises
+    ------
+    SchemaError
+        If the telescope is not in :data:`TELESCOPE_DISH_DIAMETERS`.
+    """
+    name = str(telescope).strip().upper()
+    if name not in TELESCOPE_DISH_DIAMETERS:
+        raise SchemaError(f"no dish diameter for telescope {telescope!r} (known: "
+                          f"{', '.join(sorted(TELESCOPE_DISH_DIAMETERS))})")
+    return TELESCOPE_DISH_DIAMETERS[name]
+
+
+def dish_diameter(ds: Any) -> float:
+    """The dish diameter (m) of one partition, from its data.
+
+    The median of the positive values of ``DISH_DIAMETER`` (antennas of one array share a
+    beam model); if the partition has none, the physical dish of its ``telescope_name``
+    (:data:`TELESCOPE_DISH_DIAMETERS`). Never a silent guess.
+
+    Parameters
+    ----------
+    ds
+        A partition (:class:`xarray.Dataset`) of a processing set.
+
+    Returns
+    -------
+    float
+        Dish diameter, metres.
+
+    Raises
+    ------
+    SchemaError
+        If the partition has no positive ``DISH_DIAMETER`` and its telescope is unknown.
+    """
+    if "DISH_DIAMETER" in ds.variables:
+        values = np.asarray(ds["DISH_DIAMETER"].values, dtype=np.float64).ravel()
+        values = values[np.isfinite(values) & (values > 0)]
+        if values.size:
+            return float(np.median(values))
+    telescope = str(ds.attrs.get("telescope_name", ""))
+    try:
+        return telescope_dish_diameter(telescope)
+    except SchemaError:
+        raise SchemaError(f"the data carry no DISH_DIAMETER and telescope {telescope!r} has "
+                          "no known dish diameter; add DISH_DIAMETER to the store") from None
 
 # EVLA Memo 195 (Perley 2016) coefficients (a, b, c[, d]) by frequency in MHz; the full
 # L band (the paper's 1.4 GHz) and one representative set in each higher band.
@@ -72,7 +135,8 @@ class PrimaryBeam:
     model
         ``"airy"``, ``"gaussian"``, ``"vla"`` or ``"none"`` (A = 1 everywhere).
     dish_diameter
-        Effective aperture diameter D, metres (``airy``, ``gaussian``).
+        Effective aperture diameter D, metres; required by ``airy`` and ``gaussian`` (no
+        default: take it from the data, :func:`dish_diameter`).
     blockage_diameter
         Central blockage diameter b, metres (``airy``).
     cutoff
@@ -80,18 +144,19 @@ class PrimaryBeam:
     """
 
     model: str = "airy"
-    dish_diameter: float = 25.0
+    dish_diameter: float = 0.0
     blockage_diameter: float = 0.0
     cutoff: float = DEFAULT_PB_CUTOFF
 
     def __post_init__(self) -> None:
-        if self.model not in ("airy", "gaussian", "vla", "none"):
-            raise XstackError(f"unknown primary-beam model {self.model!r} "
+        if self.model not in BEAM_MODELS:
+            raise OptionError(f"unknown primary-beam model {self.model!r} "
                               "(use airy, gaussian, vla or none)")
         if self.model in ("airy", "gaussian") and not self.dish_diameter > 0:
-            raise XstackError(f"dish diameter must be positive, got {self.dish_diameter}")
-        if not 0 <= self.blockage_diameter < self.dish_diameter or not 0 <= self.cutoff < 1:
-            raise XstackError("primary beam: need 0 <= blockage < dish and 0 <= cutoff < 1")
+            raise OptionError(f"dish diameter must be positive, got {self.dish_diameter}")
+        blockage_ok = self.blockage_diameter == 0 or 0 < self.blockage_diameter < self.dish_diameter
+        if not blockage_ok or not 0 <= self.cutoff < 1:
+            raise OptionError("primary beam: need 0 <= blockage < dish and 0 <= cutoff < 1")
 
     def __call__(self, theta: Any, frequency: Any) -> np.ndarray:
         """Power attenuation at angular distance ``theta`` (rad) and ``frequency`` (Hz).
@@ -208,7 +273,7 @@ def _vla_power(theta: np.ndarray, freq: np.ndarray) -> np.ndarray:
     return np.where((x2 < _VLA_NULLS[idx]) & (power > 0), power, 0.0)
 
 
-def standard_beam(telescope: str, dish_diameter: float = 25.0, model: str | None = None,
+def standard_beam(telescope: str, dish_diameter: float | None = None, model: str | None = None,
                   cutoff: float = DEFAULT_PB_CUTOFF) -> PrimaryBeam:
     """The conventional primary beam of a telescope.
 
@@ -217,7 +282,8 @@ def standard_beam(telescope: str, dish_diameter: float = 25.0, model: str | None
     telescope
         Telescope name as in an MS (``ALMA``, ``VLA``, ``EVLA``, ...).
     dish_diameter
-        Physical dish diameter, metres (used for telescopes without a standard model).
+        Physical dish diameter, metres (from the data: :func:`dish_diameter`); None takes the
+        telescope's from :data:`TELESCOPE_DISH_DIAMETERS` (an unknown telescope is an error).
     model
         Force ``airy``, ``gaussian`` or ``none``; ``None`` picks the telescope's standard.
     cutoff
@@ -226,6 +292,8 @@ def standard_beam(telescope: str, dish_diameter: float = 25.0, model: str | None
     name = telescope.strip().upper()
     if model == "none":
         return PrimaryBeam("none", cutoff=cutoff)
+    if dish_diameter is None:
+        dish_diameter = telescope_dish_diameter(name)
     is_alma = name.startswith("ALMA") and abs(dish_diameter - 12.0) < 0.5
     if model in (None, "airy") and is_alma:
         return PrimaryBeam("airy", 10.7, 0.75, cutoff)
@@ -234,3 +302,65 @@ def standard_beam(telescope: str, dish_diameter: float = 25.0, model: str | None
     if model == "gaussian":
         return PrimaryBeam("gaussian", dish_diameter, 0.0, cutoff)
     return PrimaryBeam("airy", dish_diameter, 0.0, cutoff)
+
+
+# ---------------------------------------------------------------------------------------------
+# the one rule for "inside the field" (docs/conventions.md, "Inside the field")
+# ---------------------------------------------------------------------------------------------
+
+#: FITS keyword in which an image records the highest channel frequency (Hz) of the data it
+#: was made from: the band edge at which :func:`inside_field` decides.
+BAND_TOP_KEY = "XSFRQHI"
+
+
+def covered(attenuation: Any, cutoff: float) -> np.ndarray:
+    """Attenuation at the band edge -> inside: ``A >= cutoff`` and ``A > 0``.
+
+    ``A > 0`` keeps a zero attenuation (beyond the first null, off a beam image) outside
+    even with ``cutoff = 0``.
+    """
+    a = np.nan_to_num(np.asarray(attenuation, dtype=np.float64), nan=0.0)
+    return (a >= cutoff) & (a > 0)
+
+
+def inside_field(beam: Any, theta: Any, frequencies: Any, cutoff: float | None = None) -> np.ndarray:
+    """Whether directions lie inside a pointing: the one rule every stage uses.
+
+    A direction at angular distance ``theta`` from the pointing centre is inside when it lies
+    inside the main lobe and the attenuation is ``A >= cutoff`` at the **highest frequency the
+    data span** (the band edge, where the beam is narrowest). For a circular beam A falls
+    with theta * nu inside the main lobe, so this is the same as "A >= cutoff in every
+    channel" for any set of channels with that highest frequency: the channels of a
+    partition (uvstack, uv-domain noise) and the band an image covers (imstack, image-domain
+    noise) give the same answer. (For the ``vla`` model, whose coefficients change with
+    frequency, the rule is by definition that of the highest frequency.)
+
+    Parameters
+    ----------
+    beam
+        A :class:`PrimaryBeam` (its main lobe is used), or a callable
+        ``beam(theta, frequency) -> A`` (theta in rad, frequency in Hz) for a sampled beam
+        (a beam image).
+    theta
+        Angular distances from the pointing centre, rad.
+    frequencies
+        Channel frequencies of the data, or the band (low, high), Hz; only the highest is
+        used.
+    cutoff
+        Attenuation below which a direction is outside (default: the beam's ``cutoff``,
+        else :data:`DEFAULT_PB_CUTOFF`).
+
+    Returns
+    -------
+    numpy.ndarray
+        bool, shaped like ``theta``. All True for the ``none`` model.
+    """
+    theta = np.asarray(theta, dtype=np.float64)
+    top = float(np.max(np.asarray(frequencies, dtype=np.float64)))
+    if cutoff is None:
+        cutoff = float(getattr(beam, "cutoff", DEFAULT_PB_CUTOFF))
+    if isinstance(beam, PrimaryBeam):
+        if beam.model == "none":
+            return np.ones(theta.shape, dtype=bool)
+        return covered(beam.main_lobe(theta, top), cutoff)
+    return covered(np.reshape(beam(theta, top), theta.shape), cutoff)

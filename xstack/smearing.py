@@ -72,9 +72,9 @@ def factor_scalar(delay: float, rate: float, frequency: float, width: float,
     """
     f = 1.0
     if width != 0.0:
-        f *= sinc(math.pi * delay * width / 299792458.0)
+        f *= sinc(math.pi * delay * width / SPEED_OF_LIGHT)
     if integration != 0.0:
-        f *= sinc(math.pi * frequency * rate * integration / 299792458.0)
+        f *= sinc(math.pi * frequency * rate * integration / SPEED_OF_LIGHT)
     return f
 
 
@@ -182,7 +182,7 @@ def _mean_factors(u, v, w, wt, l, m, nm1, freq, width, dt, sin_d, cos_d, uniform
     """
     npos = l.size
     nchan = freq.size
-    inv_c = math.pi / 299792458.0
+    inv_c = math.pi / SPEED_OF_LIGHT
     df = freq[1] - freq[0] if nchan > 1 else 0.0
     for k in numba.prange(npos):
         acc = np.zeros(nchan)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from xstack.errors import XstackError
+from xstack.errors import OutputExistsError, XstackError
 
 #: The demo scene: small enough to run in about a minute on a laptop, faint enough that the
 #: targets are invisible one by one (~0.5 sigma each) yet clearly detected in the stack.
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.outdir)
     if out.exists():
         if not args.overwrite:
-            raise XstackError(f"{out} exists (use --overwrite to replace it)")
+            raise OutputExistsError(f"{out} exists (use --overwrite to replace it)")
         shutil.rmtree(out)
     out.mkdir(parents=True)
     from xstack.cli._output import say

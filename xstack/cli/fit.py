@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from xstack import _vocabulary as V
 from xstack.errors import XstackError
 
 
@@ -18,7 +19,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "convolved with the dirty beam plus a constant). Paper section 3.4.")
     p.add_argument("stacked", help="stacked store (.zarr, from xstack uvstack) or stamp (.fits, "
                                    "from xstack imstack)")
-    p.add_argument("--model", choices=("point", "gaussian"), default="point")
+    p.add_argument("--model", choices=V.FIT_MODELS, default="point")
     p.add_argument("--uvmin", type=_types.uv_distance, metavar="DIST",
                    help=f"uv fit: minimum uv distance ({_types.DIST_HELP})")
     p.add_argument("--uvmax", type=_types.uv_distance, metavar="DIST",
@@ -30,7 +31,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--fit-radius", type=_types.angle_arcsec, metavar="ANGLE",
                    help=f"image fit: use pixels within this radius of the centre "
                         f"({_types.ANGLE_HELP})")
-    p.add_argument("--noise-correlation", choices=("psf", "residual", "none"), default="psf",
+    p.add_argument("--noise-correlation", choices=V.NOISE_CORRELATIONS, default="psf",
                    help="image fit: pixel-noise correlation used for the errors (psf)")
     p.add_argument("--png", metavar="PATH",
                    help="picture of the fit: uv-profile with the model curve (uv store) or "

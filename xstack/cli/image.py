@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _vocabulary as V
 from xstack.errors import XstackError
 
 
@@ -33,12 +34,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="CLEAN threshold, Jy/beam (50uJy, 50uJy/beam, 0.05mJy; a plain number is "
                         "Jy; default 0)")
     p.add_argument("--gain", type=float, default=0.1, help="CLEAN loop gain (default 0.1)")
-    p.add_argument("--algorithm", choices=("hogbom", "clark"), default="hogbom",
+    p.add_argument("--algorithm", choices=V.CLEAN_ALGORITHMS, default="hogbom",
                    help="CLEAN minor-cycle algorithm (default hogbom)")
     p.add_argument("--mask", default=None, metavar="MASK.fits",
                    help="CLEAN mask: FITS image of the output's size, non-zero where components "
                         "may be placed")
-    p.add_argument("--weighting", choices=("natural", "uniform", "briggs"), default="natural")
+    p.add_argument("--weighting", choices=V.IMAGE_WEIGHTINGS, default="natural")
     p.add_argument("--robust", type=float, default=0.0, help="Briggs robustness (default 0)")
     p.add_argument("--pbcor", action="store_true",
                    help="divide the image by the primary beam (NaN below the beam cutoff)")
@@ -49,7 +50,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "CLEAN needs a single pointing)")
     p.add_argument("--pb-cutoff", type=float, default=None,
                    help="mosaic: NaN where no pointing's primary beam reaches this power "
-                        "(default the beam's cutoff, 0.1)")
+                        f"(default the beam's cutoff, {V.DEFAULT_PB_CUTOFF:g})")
     p.add_argument("--png", action="store_true", help="also write OUT.png (quick-look)")
     p.add_argument("--autocorrelations", action="store_true",
                    help="image autocorrelations too (default: left out; they measure system "

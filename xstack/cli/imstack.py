@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from xstack import _vocabulary as V
 from xstack.errors import XstackError
 
 
@@ -22,13 +23,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", metavar="IMAGE.fits ... CATALOG OUT.fits",
                    help="one or more images, then the catalog (ra, dec [deg], optional weight), "
                         "then the output FITS name")
-    p.add_argument("--method", choices=("mean", "median"), default="mean",
+    p.add_argument("--method", choices=V.IMSTACK_METHODS, default="mean",
                    help="per-pixel weighted mean (default) or median")
-    p.add_argument("--weighting", choices=("sigma2", "pb", "none", "column"), default="sigma2",
+    p.add_argument("--weighting", choices=V.IMSTACK_WEIGHTINGS, default="sigma2",
                    help="stamp weights: 1/sigma_k^2 from the stamp outside the beam (default), "
                         "primary beam A^2, none, or the catalog's weight column")
     p.add_argument("--stamp-size", type=int, default=64, help="stamp size in pixels (default 64)")
-    p.add_argument("--subpixel", choices=("fourier", "spline"), default=None,
+    p.add_argument("--subpixel", choices=V.SUBPIXEL_METHODS, default=None,
                    help="align each stamp on the exact position (default: nearest pixel, as in "
                         "the paper)")
     p.add_argument("--psf", action="append", default=None, metavar="PSF.fits",
@@ -52,7 +53,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "zeroes the central N x N Fourier cells; a uv distance (4500m, "
                         "20klambda; a number with a decimal point is metres) zeroes every cell "
                         "below it")
-    p.add_argument("--cube-format", choices=("zarr", "fits"), default="zarr",
+    p.add_argument("--cube-format", choices=V.CUBE_FORMATS, default="zarr",
                    help="format of OUT.cube.* (default zarr)")
     p.add_argument("--no-png", action="store_true", help="do not write OUT.png")
     p.add_argument("--skip-outside", action="store_true",

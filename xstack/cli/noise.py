@@ -6,6 +6,7 @@ import argparse
 import warnings
 from pathlib import Path
 
+from xstack import _vocabulary as V
 from xstack.errors import XstackError
 
 
@@ -22,7 +23,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("data", help="(residual) visibilities, xstack store (.zarr); or a residual "
                                 "image (.fits) for image-domain estimates")
     p.add_argument("catalog", help="target catalog (ra, dec [deg], optional flux [Jy], weight)")
-    p.add_argument("--method", choices=("analytic", "mc", "random", "bootstrap"), default="mc")
+    p.add_argument("--method", choices=V.NOISE_METHODS, default="mc")
     p.add_argument("--realizations", type=int, default=100, help="number of realisations (100)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--flux", type=_types.flux_jy, metavar="FLUX",
@@ -32,9 +33,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="random positions: minimum distance to targets, --avoid sources and "
                         f"each other ({_types.ANGLE_HELP}; default: 3 synthesized beams)")
     p.add_argument("--avoid", help="catalog of further positions to avoid (bright sources)")
-    p.add_argument("--weighting", choices=("pb", "none", "column"), default="pb")
-    p.add_argument("--primary-beam", choices=("auto", "airy", "gaussian", "none"), default="auto")
-    p.add_argument("--pb-cutoff", type=float, default=0.1)
+    p.add_argument("--weighting", choices=V.NOISE_WEIGHTINGS, default="pb")
+    p.add_argument("--primary-beam", choices=V.NOISE_PRIMARY_BEAMS, default="auto")
+    p.add_argument("--pb-cutoff", type=float, default=V.DEFAULT_PB_CUTOFF)
     p.add_argument("--uvmin", type=_types.uv_distance, metavar="DIST",
                    help=f"minimum uv distance ({_types.DIST_HELP})")
     p.add_argument("--uvmax", type=_types.uv_distance, metavar="DIST",
@@ -49,7 +50,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "(ECSV/CSV, ra dec vertices in deg) or a FITS mask (nonzero = inside)")
     p.add_argument("--psf", help="image domain: dirty beam FITS for --method mc "
                                  "(default: X.psf.fits beside the image)")
-    p.add_argument("--engine", choices=("auto", "antenna", "row"), default="auto",
+    p.add_argument("--engine", choices=V.NOISE_ENGINES, default="auto",
                    help="uv domain: per-antenna phasors where the UVW allow it (auto), always "
                    "(antenna: an error where they do not) or per-row phasors (row)")
     p.add_argument("--png", help="histogram of the realisations (PNG)")
@@ -101,11 +102,11 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress and sys.stderr.isatty(), region=args.region,
             image_corrected=None if args.image_corrected is None else args.image_corrected == "yes",
             autocorrelations=args.autocorrelations)
-    from xstack.cli._output import count, figure, result, warn
+    from xstack.cli._output import count, figure, result
 
     for w in caught:
-        if issubclass(w.category, UserWarning):
-            warn(str(w.message))
+        if issubclass(w.category, UserWarning):  # through the CLI's printer: names the flag
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     files = {}
     if args.png and res.realizations >= 2:
         from xstack.noise.plot import plot_histogram

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from xstack import _vocabulary as V
+
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -16,7 +18,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("data", help="input store (.zarr)")
     p.add_argument("model", help="component catalog or CLEAN model image (.fits)")
     p.add_argument("out", help="output residual store (.zarr)")
-    p.add_argument("--primary-beam", choices=("standard", "airy", "gaussian", "none"),
+    p.add_argument("--primary-beam", choices=V.SUBTRACT_PRIMARY_BEAMS,
                    default="standard",
                    help="catalog models: primary beam applied to the components (default: the "
                         "telescope's standard beam)")

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from xstack import _vocabulary as V
 from xstack.errors import XstackError
 
 
@@ -27,7 +28,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("inputs", nargs="+", metavar="DATA... CATALOG OUT.zarr",
                    help="input stores or MSs, then the catalog (ra, dec in degrees or "
                         "sexagesimal; optional weight, sigma), then the output store")
-    p.add_argument("--weighting", default="pb", choices=("none", "pb", "sigma2", "column"),
+    p.add_argument("--weighting", default="pb", choices=V.UVSTACK_WEIGHTINGS,
                    help="position weights: none, pb (A^2, default), sigma2 (1/sigma^2 from "
                         "--noise-image, else the catalog's sigma column, else analytic 1/A "
                         "noise), column (weight column)")
@@ -38,23 +39,23 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "(paper 3.2)")
     p.add_argument("--primary-beam", default="auto", metavar="MODEL",
                    help="auto (telescope standard, default), airy, gaussian, none, or PB.fits")
-    p.add_argument("--pb-cutoff", type=float, default=0.1, metavar="X",
+    p.add_argument("--pb-cutoff", type=float, default=V.DEFAULT_PB_CUTOFF, metavar="X",
                    help="positions with attenuation below X in any channel do not enter a "
-                        "pointing (default 0.1)")
+                        f"pointing (default {V.DEFAULT_PB_CUTOFF:g})")
     p.add_argument("--uvmin", type=_types.uv_distance, default=None, metavar="DIST",
                    help=f"smallest uv distance in the flux ({_types.DIST_HELP})")
     p.add_argument("--uvmax", type=_types.uv_distance, default=None, metavar="DIST",
                    help="largest uv distance in the flux (as --uvmin)")
     p.add_argument("--polarizations", default="parallel",
                    help="parallel (Stokes I, default), all, or a comma list such as RR,LL")
-    p.add_argument("--engine", default="auto", choices=("auto", "antenna", "numba", "numpy", "nufft"),
+    p.add_argument("--engine", default="auto", choices=V.UVSTACK_ENGINES,
                    help="phasor engine, float64 phases (default auto: per-antenna phasors where "
                    "the UVW factorise to 1e-9 rad, else per-row numba)")
-    p.add_argument("--smearing", default="auto", choices=("auto", "correct", "none"),
+    p.add_argument("--smearing", default="auto", choices=V.SMEARING_MODES,
                    help="correct each position for bandwidth and time-average smearing: auto "
                    "(default: data that carry it, i.e. real data and simulations that asked for "
                    "it), correct (always), none")
-    p.add_argument("--errors", default="auto", choices=("auto", "weights", "empirical"),
+    p.add_argument("--errors", default="auto", choices=V.UVSTACK_ERRORS,
                    help="which flux error to print first: weights (from WEIGHT as 1/sigma^2), "
                         "empirical (from the visibility scatter between neighbouring channels) "
                         "or auto (default: empirical when the two differ by more than 20%%, "

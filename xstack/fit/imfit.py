@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from xstack.errors import XstackError
+from xstack._vocabulary import FIT_MODELS, NOISE_CORRELATIONS
+from xstack.errors import OptionError, XstackError
 from xstack.fit.models import GAUSS_K, theta_and_error, theta_upper_limit
 from xstack.fit.result import FitResult
 
@@ -185,10 +186,10 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     """
     from scipy.optimize import least_squares
 
-    if model not in ("point", "gaussian"):
-        raise XstackError(f"unknown model {model!r} (use point or gaussian)")
-    if noise_correlation not in ("psf", "residual", "none"):
-        raise XstackError(f"unknown noise_correlation {noise_correlation!r} (psf, residual, none)")
+    if model not in FIT_MODELS:
+        raise OptionError(f"unknown model {model!r} (use point or gaussian)")
+    if noise_correlation not in NOISE_CORRELATIONS:
+        raise OptionError(f"unknown noise_correlation {noise_correlation!r} (psf, residual, none)")
     smeared = False
     pb_convention = "not stated"
     if isinstance(stamp, (str, os.PathLike)):
@@ -206,7 +207,8 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
             psf = info["psf"]
             smeared = info["psf_smeared"]
             if psf is None:
-                raise XstackError(f"{stamp}: no PSF extension; give the dirty beam with --psf")
+                raise XstackError(f"{stamp}: no PSF extension; give the dirty beam with psf=",
+                                  option="psf")
     else:
         img = np.asarray(stamp, dtype=np.float64)
         if pixel_arcsec is None:

@@ -20,8 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from xstack._vocabulary import FIT_MODELS
 from xstack.coords import SPEED_OF_LIGHT
-from xstack.errors import XstackError
+from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.fit.models import GAUSS_K, linear_initial_guess, theta_and_error, theta_upper_limit
 from xstack.fit.result import FitResult
@@ -67,9 +68,9 @@ def collect_uv(stacked: Any, *, uvmin: Any = None, uvmax: Any = None
             ws.append(wt[sel])
             chi2_im += float(np.sum(wt[sel] * vis.imag[sel] ** 2))
     if n_total == 0:
-        raise XstackError("no usable visibilities (all flagged or zero weight)")
+        raise NoDataError("no usable visibilities (all flagged or zero weight)")
     if not ws:
-        raise XstackError(f"no visibilities left in the uv range (uvmin={uvmin}, uvmax={uvmax}); "
+        raise NoDataError(f"no visibilities left in the uv range (uvmin={uvmin}, uvmax={uvmax}); "
                           f"{n_total} usable visibilities lie outside it")
     return (np.concatenate(qs), np.concatenate(res), np.concatenate(ws), chi2_im, n_total)
 
@@ -117,7 +118,7 @@ def fit_uv_arrays(q2: np.ndarray, re: np.ndarray, w: np.ndarray, *, model: str =
     n_im = int(n_vis if n_im is None else n_im)
     wsum = float(w.sum())
     if not wsum > 0:
-        raise XstackError("no visibilities with positive weight to fit")
+        raise NoDataError("no visibilities with positive weight to fit")
     if model == "point":
         flux = float(np.sum(w * re) / wsum)
         chi2 = float(np.sum(w * (re - flux) ** 2)) + chi2_extra
@@ -233,8 +234,8 @@ def fit_uv(stacked: Any, *, model: str = "point", uvmin: Any = None, uvmax: Any 
     XstackError
         Unknown model, no visibilities left in the uv range, or an ill-conditioned fit.
     """
-    if model not in ("point", "gaussian"):
-        raise XstackError(f"unknown model {model!r} (use point or gaussian)")
+    if model not in FIT_MODELS:
+        raise OptionError(f"unknown model {model!r} (use point or gaussian)")
     if binned and nbins < 3:
         raise XstackError("binned fit needs at least 3 bins")
     q2, re, w, chi2_im, n_total = collect_uv(stacked, uvmin=uvmin, uvmax=uvmax)

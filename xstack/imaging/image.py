@@ -34,9 +34,11 @@ import xarray as xr
 from astropy.io import fits
 from astropy.wcs import WCS
 
+from xstack import _vocabulary
 from xstack._select import PARALLEL_HANDS, sky_correlations
+from xstack.beams import BAND_TOP_KEY
 from xstack.coords import angular_separation
-from xstack.errors import XstackError
+from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.imaging import kernels
 from xstack.imaging.fitsio import (
     PBCOR_KEY,
@@ -48,7 +50,7 @@ from xstack.imaging.fitsio import (
     write_image,
 )
 
-WEIGHTINGS = ("natural", "uniform", "briggs")
+WEIGHTINGS = _vocabulary.IMAGE_WEIGHTINGS
 _ARCSEC = math.pi / (180.0 * 3600.0)
 
 
@@ -183,8 +185,9 @@ def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, 
     if not allow_mosaic and len(group_pointings(parts)) > 1:
         raise XstackError(
             f"the selected partitions have {len(group_pointings(parts))} different phase centres "
-            "(a mosaic): CLEAN works on one pointing at a time (--partition / partitions=); "
-            "a dirty linear mosaic of all pointings is made without --niter")
+            "(a mosaic): CLEAN works on one pointing at a time (choose one with partitions=); "
+            "a dirty linear mosaic of all pointings is made without niter=",
+            option=("partitions", "niter"))
     return parts
 
 
@@ -523,9 +526,9 @@ class Imager:
                  image_center: tuple[float, float] | None = None,
                  autocorrelations: bool = False) -> None:
         if weighting not in WEIGHTINGS:
-            raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
+            raise OptionError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
         if not (1e-12 < epsilon < 0.1):
-            raise XstackError(f"gridder epsilon must be in (1e-12, 0.1), got {epsilon}")
+            raise OptionError(f"gridder epsilon must be in (1e-12, 0.1), got {epsilon}")
         self.ny, self.nx, self.cell = _check_grid(size, cell_arcsec)
         self.cell_arcsec = float(cell_arcsec)
         # autocorrelations measure system power, not the sky: flagged unless asked for
@@ -634,7 +637,7 @@ class Imager:
             if used.size:
                 fmin, fmax = min(fmin, used.min()), max(fmax, used.max())
         if not sum_w > 0:
-            raise XstackError("no unflagged parallel-hand visibilities with positive weight to image")
+            raise NoDataError("no unflagged parallel-hand visibilities with positive weight to image")
         self.sum_weights = sum_w
         return {"dirty": dirty / sum_w, "psf": psf / sum_w, "sum_weights": sum_w,
                 "noise_variance": var_num / sum_w**2,
@@ -659,11 +662,10 @@ class Imager:
 
         ``main_lobe``: 0 beyond the first null (the attenuation a correction divides by).
         """
-        from xstack.beams import standard_beam
+        from xstack.beams import dish_diameter, standard_beam
 
         ds = self.parts[0][1]
-        dish = float(np.median(np.asarray(ds["DISH_DIAMETER"].values))) \
-            if "DISH_DIAMETER" in ds else 25.0
+        dish = dish_diameter(ds)
         beam = standard_beam(str(ds.attrs.get("telescope_name", "")), dish)
         l, m = kernels.pixel_lm(self.ny, self.nx, self.cell)
         if self._shift:
@@ -706,6 +708,9 @@ class Imager:
         # the beam travels with every image (OUT.pb.fits), corrected or not
         pb, cutoff = self.primary_beam(stats["frequency"], main_lobe=True)
         header[PBCUT_KEY] = (float(cutoff), "primary-beam cutoff (coverage: pb >= cutoff)")
+        # the band edge at which every stage decides "inside the field" (xstack.beams)
+        top = max(float(np.max(np.asarray(d["frequency"].values))) for _, d in self.parts)
+        header[BAND_TOP_KEY] = (top, "[Hz] highest channel frequency of the data")
         if pbcor:
             extra["uncorrected"] = image
             image = np.where(pb >= max(cutoff, 1e-6), image / np.where(pb > 0, pb, 1.0), np.nan)
@@ -854,9 +859,7 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
                         autocorrelations=autocorrelations)
         try:
             st = imager.dirty_and_psf()
-        except XstackError as exc:  # a fully flagged pointing adds nothing
-            if "no unflagged" not in str(exc):
-                raise
+        except NoDataError:  # a fully flagged pointing adds nothing
             continue
         a_p, beam_cut = imager.primary_beam(st["frequency"])
         cutoff = beam_cut if pb_cutoff is None else cutoff
@@ -875,7 +878,7 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
         pointings.append({"phase_center": pc, "partitions": [n for n, _ in members],
                           "noise_weight": w_p, "sum_weights": st["sum_weights"]})
     if num is None or imager is None:
-        raise XstackError("no unflagged parallel-hand visibilities with positive weight to image")
+        raise NoDataError("no unflagged parallel-hand visibilities with positive weight to image")
     cutoff = max(float(cutoff), 1e-6)
     pb_abs = np.sqrt(den / total_w)
     pb_norm = float(pb_abs.max())

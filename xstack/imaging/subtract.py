@@ -161,7 +161,7 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     import dask.array as da
 
     from xstack._atomic import check_output
-    from xstack.beams import standard_beam
+    from xstack.beams import dish_diameter, standard_beam
     from xstack.coords import angular_separation, radec_to_lmn
     from xstack.schema import iter_partitions, open_store, validate_store, write_store
 
@@ -192,7 +192,7 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
         if kind == "catalog":
             l, m, _, n1 = radec_to_lmn(spec["ra"], spec["dec"], ra0, dec0)
             sep = angular_separation(ra0, dec0, spec["ra"], spec["dec"])
-            dish = float(np.median(ds["DISH_DIAMETER"].values)) if "DISH_DIAMETER" in ds else 25.0
+            dish = dish_diameter(ds)
             beam = standard_beam(str(ds.attrs.get("telescope_name", "")), dish, model=primary_beam)
             att = beam(sep[:, None], freq[None, :])
             # sources behind the sky (n < 0) or outside the beam's main lobe contribute nothing

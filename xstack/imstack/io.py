@@ -17,11 +17,12 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS, FITSFixedWarning
 
-from xstack.errors import XstackError
+from xstack.beams import BAND_TOP_KEY, TELESCOPE_DISH_DIAMETERS
+from xstack.errors import XstackError, XstackWarning
 
-#: Physical dish diameters (m) of telescopes whose FITS TELESCOP we recognise.
-DISH_DIAMETERS = {"ALMA": 12.0, "VLA": 25.0, "EVLA": 25.0, "JVLA": 25.0, "MEERKAT": 13.5,
-                  "ATCA": 22.0, "WSRT": 25.0, "GMRT": 45.0, "SMA": 6.0, "NOEMA": 15.0}
+#: Physical dish diameters (m) of telescopes whose FITS TELESCOP we recognise (one home:
+#: :data:`xstack.beams.TELESCOPE_DISH_DIAMETERS`).
+DISH_DIAMETERS = TELESCOPE_DISH_DIAMETERS
 
 
 @dataclass
@@ -50,6 +51,12 @@ class ImageInfo:
         BUNIT ("" if absent).
     path
         Path of the file, or None for an in-memory HDU.
+    band_top_hz
+        Highest frequency of the data the image was made from, Hz: the band edge at which
+        "inside the field" is decided (:func:`xstack.beams.inside_field`). ``XSFRQHI`` if
+        the header has it (xstack images), else the upper edge of the frequency plane
+        (CRVAL3 + |CDELT3|/2, as CASA and WSClean record a multi-frequency image), else
+        ``frequency_hz``.
     """
 
     data: np.ndarray
@@ -63,6 +70,7 @@ class ImageInfo:
     bunit: str = ""
     path: Path | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    band_top_hz: float | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -136,12 +144,17 @@ def image_from_hdu(hdu: fits.ImageHDU | fits.PrimaryHDU, name: str, path: Path |
                 float(header.get("BPA", 0.0)))
         if not (beam[0] > 0 and beam[1] > 0):
             beam = None
-    freq = None
+    freq = top = None
     if wcs.wcs.spec >= 0 and wcs.wcs.ctype[wcs.wcs.spec].upper().startswith("FREQ"):
         spec = wcs.sub([wcs.wcs.spec + 1])
         freq = float(spec.wcs_pix2world([[0.0]], 0)[0, 0])
+        top = freq + abs(float(spec.wcs_pix2world([[0.5]], 0)[0, 0]) - freq)
     elif header.get("RESTFRQ") or header.get("RESTFREQ"):
         freq = float(header.get("RESTFRQ") or header.get("RESTFREQ"))
+    if header.get(BAND_TOP_KEY):
+        top = float(header[BAND_TOP_KEY])
+    if top is None or not np.isfinite(top) or top <= 0:
+        top = freq
     if "OBSRA" in header and "OBSDEC" in header:
         pointing = (float(header["OBSRA"]), float(header["OBSDEC"]))
     else:
@@ -149,7 +162,7 @@ def image_from_hdu(hdu: fits.ImageHDU | fits.PrimaryHDU, name: str, path: Path |
     telescope = str(header["TELESCOP"]).strip() if "TELESCOP" in header else None
     return ImageInfo(data=plane, wcs=celestial, name=name, header=header.copy(), beam_arcsec=beam,
                      frequency_hz=freq, telescope=telescope or None, pointing_deg=pointing,
-                     bunit=str(header.get("BUNIT", "")).strip(), path=path)
+                     bunit=str(header.get("BUNIT", "")).strip(), path=path, band_top_hz=top)
 
 
 def read_image(source: str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo | Any,
@@ -293,6 +306,10 @@ class BeamConvention:
     values
         ``values(ra_deg, dec_deg) -> A`` (dimensionless, 0 off the beam image), or None if no
         beam is known (then ``missing`` says why).
+    inside
+        ``inside(ra_deg, dec_deg) -> bool``: the positions inside the image's field by the one
+        rule of every stage (:func:`xstack.beams.inside_field`, at the band edge
+        ``ImageInfo.band_top_hz``), or None if no beam is known.
     """
 
     corrected: bool
@@ -302,6 +319,7 @@ class BeamConvention:
     values: Any = None
     missing: str = ""
     from_image: bool = False
+    inside: Any = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly summary (what the results record)."""
@@ -342,7 +360,7 @@ def _model_beam(info: ImageInfo, pb: Any) -> tuple[Any, str]:
 
 def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = None, *,
                cutoff: float | None = None,
-               how_to_state: str = "--image-corrected yes|no (image_corrected=)") -> BeamConvention:
+               how_to_state: str = "image_corrected=True/False") -> BeamConvention:
     """The primary-beam convention of ``info`` and the beam A to use with it.
 
     The convention is the image's own statement (``XSPBCOR``) unless ``image_corrected``
@@ -355,8 +373,12 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
     ``ImageResult``; else the telescope's standard beam (TELESCOP, the image frequency)
     centred on the pointing (OBSRA/OBSDEC or the reference position) -- except for a mosaic
     (``XSMOSAIC`` > 1), whose beam is not that of one pointing.
+
+    ``inside`` of the result decides which positions are inside the field by the one rule of
+    every stage (:func:`xstack.beams.inside_field` at ``info.band_top_hz``; for a mosaic's
+    effective beam, the beam file itself; docs/conventions.md "Inside the field").
     """
-    from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam
+    from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam, inside_field
     from xstack.coords import angular_separation
     from xstack.imaging.fitsio import PBCUT_KEY, pb_corrected_from_header, pb_file_from_header
 
@@ -369,25 +391,28 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
     if image_corrected is not None:
         corrected, corrected_from = bool(image_corrected), "option"
         if said is not None and said != corrected:
-            warnings.warn(f"{info.name}: its header says XSPBCOR = {'T' if said else 'F'} but it "
-                          f"is treated as {'' if corrected else 'not '}primary-beam corrected "
-                          "as asked (image_corrected / --image-corrected)", stacklevel=3)
+            warnings.warn(XstackWarning(
+                f"{info.name}: its header says XSPBCOR = {'T' if said else 'F'} but it is "
+                f"treated as {'' if corrected else 'not '}primary-beam corrected as asked "
+                "(image_corrected)", option="image_corrected"), stacklevel=3)
     elif said is not None:
         corrected, corrected_from = said, "header"
     else:
         corrected, corrected_from = True, "assumed"
         if not pb_none:
-            warnings.warn(f"{info.name}: the header does not say whether the image is primary-"
-                          "beam corrected (no XSPBCOR): used as is, as if corrected; if it is "
-                          f"not, state it with {how_to_state}", stacklevel=3)
+            warnings.warn(XstackWarning(
+                f"{info.name}: the header does not say whether the image is primary-beam "
+                "corrected (no XSPBCOR): used as is, as if corrected; if it is not, state it "
+                f"with {how_to_state}", option="image_corrected"), stacklevel=3)
     if cutoff is None:
         cutoff = float(header.get(PBCUT_KEY, DEFAULT_PB_CUTOFF))
     conv = BeamConvention(corrected, corrected_from, "unknown", float(cutoff))
 
-    def from_array(beam: np.ndarray, wcs: WCS, label: str) -> None:
+    def from_array(beam: np.ndarray, wcs: WCS, label: str, beam_freq: float | None = None) -> None:
         beam = np.asarray(beam, dtype=np.float64)
         conv.values = lambda ra, dec: beam_image_values(beam, wcs, ra, dec)
         conv.beam_from, conv.from_image = label, True
+        conv.inside = _sampled_inside(beam, wcs, info, beam_freq or info.frequency_hz, conv)
 
     def from_model(model: PrimaryBeam, label: str) -> None:
         if info.frequency_hz is None:
@@ -398,19 +423,23 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         freq = float(info.frequency_hz)
         conv.values = lambda ra, dec: np.asarray(model.main_lobe(angular_separation(
             np.radians(ra), np.radians(dec), r0, d0), freq), dtype=np.float64)
+        top = info.band_top_hz or freq
+        conv.inside = lambda ra, dec: inside_field(model, angular_separation(
+            np.radians(ra), np.radians(dec), r0, d0), top, conv.cutoff)
         conv.beam_from = (f"{label}: {model.model} beam ({model.dish_diameter:g} m) at "
                           f"{freq / 1e9:.6g} GHz centred on ({info.pointing_deg[0]:.6f}, "
                           f"{info.pointing_deg[1]:.6f}) deg")
 
     if pb_none:
         conv.values = lambda ra, dec: np.ones(np.shape(ra))
+        conv.inside = lambda ra, dec: np.ones(np.shape(ra), dtype=bool)
         conv.beam_from = "none (A = 1)"
         return conv
     if pb is not None:
         if isinstance(pb, (str, os.PathLike)) and not (isinstance(pb, str) and pb in (
                 "airy", "gaussian", "vla")):
             pbimg = read_image(pb, name=f"primary beam {pb}")
-            from_array(pbimg.data, pbimg.wcs, f"option: beam image {pb}")
+            from_array(pbimg.data, pbimg.wcs, f"option: beam image {pb}", pbimg.frequency_hz)
         elif isinstance(pb, np.ndarray):
             if pb.shape != info.shape:
                 raise XstackError(f"{info.name}: the primary-beam array has shape {pb.shape}, "
@@ -432,7 +461,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         if pbimg.shape != info.shape:
             raise XstackError(f"{pb_file}: primary beam of shape {pbimg.shape} for an image of "
                               f"shape {info.shape}")
-        from_array(pbimg.data, pbimg.wcs, f"beam file {pb_file.name}")
+        from_array(pbimg.data, pbimg.wcs, f"beam file {pb_file.name}", pbimg.frequency_hz)
         return conv
     if "pb" in info.extra:
         from_array(info.extra["pb"], info.wcs, "in-memory beam of the image")
@@ -447,3 +476,50 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         return conv
     from_model(model, "model")
     return conv
+
+
+def _sampled_inside(beam: np.ndarray, wcs: WCS, info: ImageInfo, beam_freq: float | None,
+                    conv: BeamConvention) -> Any:
+    """``inside(ra_deg, dec_deg)`` for a beam known as an image (file, array) on ``wcs``.
+
+    The rule is :func:`xstack.beams.inside_field` at the image's band edge
+    (``info.band_top_hz``). A single pointing's beam image holds A at ``beam_freq``; a
+    circular beam depends on theta * nu, so A(theta, nu) is read at the radius
+    theta * nu / beam_freq from the pointing centre (bilinear) -- the same positions as the
+    model beam of uvstack. A mosaic's effective beam (``XSMOSAIC`` > 1) has no one centre to
+    scale about: it is read where the position is (nearest pixel, as the mosaic is blanked),
+    i.e. its own coverage at the image's reference frequency (docs/conventions.md).
+    """
+    from scipy.ndimage import map_coordinates
+
+    from xstack.beams import inside_field
+    from xstack.coords import angular_separation, lm_to_radec
+
+    mosaic = int(info.header.get("XSMOSAIC", 1) or 1) > 1
+    top = info.band_top_hz
+    if mosaic or not top or not beam_freq:
+        return lambda ra, dec: inside_field(
+            lambda t, f: beam_image_values(beam, wcs, ra, dec), np.zeros(np.shape(ra)),
+            top or 1.0, conv.cutoff)
+    r0, d0 = np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1])
+    plane = np.nan_to_num(beam, nan=0.0)
+
+    def inside(ra: Any, dec: Any) -> np.ndarray:
+        ra_r, dec_r = np.radians(np.asarray(ra, np.float64)), np.radians(np.asarray(dec, np.float64))
+        theta = angular_separation(ra_r, dec_r, r0, d0)
+        # position angle of each position about the pointing centre (east of north)
+        pa = np.arctan2(np.sin(ra_r - r0) * np.cos(dec_r),
+                        np.cos(d0) * np.sin(dec_r) - np.sin(d0) * np.cos(dec_r) * np.cos(ra_r - r0))
+
+        def attenuation(t: np.ndarray, f: float) -> np.ndarray:
+            s = np.minimum(np.sin(t) * (f / beam_freq), 1.0)  # A depends on sin(theta) nu
+            ra_s, dec_s = lm_to_radec(s * np.sin(pa), s * np.cos(pa), r0, d0)
+            x, y = wcs.world_to_pixel_values(np.degrees(ra_s), np.degrees(dec_s))
+            x = np.nan_to_num(np.asarray(x, np.float64), nan=-1e9)
+            y = np.nan_to_num(np.asarray(y, np.float64), nan=-1e9)
+            return map_coordinates(plane, [np.atleast_1d(y), np.atleast_1d(x)], order=1,
+                                   mode="constant", cval=0.0).reshape(np.shape(t))
+
+        return inside_field(attenuation, theta, top, conv.cutoff)
+
+    return inside

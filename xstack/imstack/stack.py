@@ -19,11 +19,11 @@ import xarray as xr
 from astropy.io import fits
 from astropy.table import Table
 
-from xstack import __version__
+from xstack import __version__, _vocabulary
 from xstack._atomic import atomic_output, check_output
 from xstack._progress import progress_iter
-from xstack.coords import parse_distance, read_catalog
-from xstack.errors import XstackError
+from xstack.coords import SPEED_OF_LIGHT, parse_distance, read_catalog
+from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.imstack import kernels
 from xstack.imstack.io import (
     BeamConvention,
@@ -36,8 +36,8 @@ from xstack.imstack.io import (
     write_fits_atomic,
 )
 
-METHODS = ("mean", "median")
-WEIGHTINGS = ("sigma2", "pb", "none", "column")
+METHODS = _vocabulary.IMSTACK_METHODS
+WEIGHTINGS = _vocabulary.IMSTACK_WEIGHTINGS
 SUBPIXEL = (False, "fourier", "spline")
 
 ImageSource = str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo
@@ -190,7 +190,7 @@ def _filter_mask(filter_lowfreq: Any, size: int, pix_x_arcsec: float, pix_y_arcs
         if freq_hz is None:
             raise XstackError("filter_lowfreq in metres needs the image frequency; give it in "
                               "klambda or as a number of central Fourier cells")
-        value = value * freq_hz / 299_792_458.0
+        value = value * freq_hz / SPEED_OF_LIGHT
     # one Fourier cell of a stamp is 1 / (size * pixel) wavelengths (pixel in radians)
     cell = 1.0 / (size * np.radians(max(pix_x_arcsec, pix_y_arcsec) / 3600.0))
     return kernels.lowfreq_mask((size, size), q_min_cells=value / cell)
@@ -248,8 +248,11 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         own beam. Default: the beam file named by the header (``XSPBFILE``, written by
         ``xstack image`` as ``X.pb.fits``; a mosaic's effective beam), else the telescope's
         standard beam from TELESCOP and the image frequency, centred on OBSRA/OBSDEC or the
-        WCS reference position (never for a mosaic). Positions where A < the cutoff (the
-        header's ``XSPBCUT``, the PrimaryBeam's, else 0.1) are not stacked from that image.
+        WCS reference position (never for a mosaic). Positions outside the field are not
+        stacked from that image: the one rule of every stage
+        (:func:`xstack.beams.inside_field`: A >= the cutoff -- the header's ``XSPBCUT``, the
+        PrimaryBeam's, else 0.1 -- at the highest frequency of the image's band, inside the
+        main lobe; docs/conventions.md "Inside the field").
     image_corrected
         Whether the image is primary-beam corrected (one, or one per image); default: the
         header's ``XSPBCOR``; an image that says nothing is used as is, with a warning. The
@@ -295,18 +298,18 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     """
     # ---- options (before any work) ----------------------------------------------------------
     if method not in METHODS:
-        raise XstackError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+        raise OptionError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if weighting not in WEIGHTINGS:
-        raise XstackError(f"weighting must be one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
+        raise OptionError(f"weighting must be one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
     if subpixel in (None, "none", "nearest"):
         subpixel = False
     if subpixel not in SUBPIXEL:
-        raise XstackError(f"subpixel must be fourier or spline (or False), got {subpixel!r}")
+        raise OptionError(f"subpixel must be fourier or spline (or False), got {subpixel!r}")
     if isinstance(stamp_size, bool) or int(stamp_size) != stamp_size or stamp_size < 5:
-        raise XstackError(f"stamp size must be an integer >= 5 pixels, got {stamp_size!r}")
+        raise OptionError(f"stamp size must be an integer >= 5 pixels, got {stamp_size!r}")
     stamp_size = int(stamp_size)
-    if cube_format not in ("zarr", "fits"):
-        raise XstackError(f"cube format must be zarr or fits, got {cube_format!r}")
+    if cube_format not in _vocabulary.CUBE_FORMATS:
+        raise OptionError(f"cube format must be zarr or fits, got {cube_format!r}")
     paths = None
     if out is not None:
         paths = output_paths(out, cube_format)
@@ -351,7 +354,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     corr = _as_list(image_corrected, len(infos), "image_corrected")
     convs: list[BeamConvention] = [
         image_beam(info, pbs[i], corr[i],
-                   how_to_state="--image-corrected yes|no (image_corrected=True/False)")
+                   how_to_state="image_corrected=True/False")
         for i, info in enumerate(infos)]
     psfs = _as_list(psf, len(infos), "psf")
     fmask = _filter_mask(filter_lowfreq, stamp_size, pix_x, pix_y, infos[0].frequency_hz)
@@ -371,14 +374,16 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
             np.where(inside, py, 0))
         inside &= np.isfinite(info.data[iy, ix])  # blanked centre: not covered by this image
         conv = convs[i]
-        # A is needed for pb weights and to correct an uncorrected image; a beam that travels
-        # with the image (file, array, option) also defines its coverage (A >= cutoff)
+        # A is needed for pb weights and to correct an uncorrected image (and recorded when
+        # the beam travels with the image)
         if weighting == "pb" or not conv.corrected or conv.from_image:
             if conv.values is None:
                 raise XstackError(conv.missing or f"{info.name}: no primary beam known; give pb=")
-            a = np.asarray(conv.values(ra, dec), dtype=np.float64)
-            inside &= (a >= conv.cutoff) & (a > 0)  # A = 0 (beyond the null) even at cutoff 0
-            atten[:, i] = a
+            atten[:, i] = np.asarray(conv.values(ra, dec), dtype=np.float64)
+        # whenever a beam is known, the one rule of every stage decides "inside the field"
+        # (xstack.beams.inside_field at the image's band edge, docs/conventions.md)
+        if conv.inside is not None:
+            inside &= np.asarray(conv.inside(ra, dec), dtype=bool)
         seen[:, i] = inside
         pix[:, i, 0], pix[:, i, 1] = px, py
     unseen = np.flatnonzero(~seen.any(axis=1))
@@ -387,7 +392,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         raise XstackError(f"{unseen.size} of {n_pos} positions are outside every image, e.g. row "
                           f"{k + 1} (ra={ra[k]:.6f}, dec={dec[k]:.6f} deg); remove them or skip_outside")
     if unseen.size == n_pos:
-        raise XstackError("no position lies inside any image")
+        raise NoDataError("no position lies inside any image")
 
     # ---- stamps -----------------------------------------------------------------------------
     blocks, meta = [], []
@@ -430,7 +435,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     else:
         w = np.ones(rows.size)
     if not np.any(w > 0):
-        raise XstackError("every stamp has zero weight (no usable noise estimate?)")
+        raise NoDataError("every stamp has zero weight (no usable noise estimate?)")
 
     # ---- aggregation ------------------------------------------------------------------------
     if method == "mean":

@@ -23,19 +23,26 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _vocabulary
 from xstack._antenna import MIN_ROWS_PER_ANTENNA
 from xstack._json import finite_or_none
 from xstack._scatter import EMPIRICAL_TOLERANCE
-from xstack.beams import DEFAULT_PB_CUTOFF, PrimaryBeam, standard_beam
+from xstack.beams import (
+    DEFAULT_PB_CUTOFF,
+    PrimaryBeam,
+    dish_diameter,
+    inside_field,
+    standard_beam,
+)
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn, read_catalog
-from xstack.errors import XstackError
+from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.noise import kernels
 from xstack.noise.positions import ARCSEC, make_region, random_positions
 
-METHODS = ("analytic", "mc", "random", "bootstrap")
-ENGINES = ("auto", "antenna", "row")
-WEIGHTINGS = ("none", "pb", "column")
+METHODS = _vocabulary.NOISE_METHODS
+ENGINES = _vocabulary.NOISE_ENGINES
+WEIGHTINGS = _vocabulary.NOISE_WEIGHTINGS
 
 
 @dataclass
@@ -134,7 +141,7 @@ class _Pointing:
         self.ds = ds
         self.centre = tuple(float(x) for x in ds.attrs["phase_center"])
         self.freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-        dish = float(np.median(ds["DISH_DIAMETER"].values)) if "DISH_DIAMETER" in ds else 25.0
+        dish = dish_diameter(ds)
         if isinstance(primary_beam, PrimaryBeam):
             self.beam = primary_beam
         else:
@@ -156,10 +163,9 @@ class _Pointing:
         return self.beam.main_lobe(theta[None, :], self.freq[:, None])
 
     def inside(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
-        """In this pointing: A >= cutoff in every channel (as xstack.uvstack decides)."""
-        if self.beam.model == "none":
-            return np.ones(np.shape(ra), dtype=bool)
-        return np.all(self.attenuation(ra, dec) >= max(self.beam.cutoff, 1e-12), axis=0)
+        """In this pointing: the one rule of every stage (:func:`xstack.beams.inside_field`)."""
+        theta = angular_separation(ra, dec, self.centre[0], self.centre[1])
+        return inside_field(self.beam, theta, self.freq)
 
     def radius(self, field_radius: float | None) -> float:
         if field_radius is not None:
@@ -313,22 +319,22 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         dense to place random positions.
     """
     if method not in METHODS:
-        raise XstackError(f"unknown noise method {method!r} (use {', '.join(METHODS)})")
+        raise OptionError(f"unknown noise method {method!r} (use {', '.join(METHODS)})")
     if domain not in ("uv", "image"):
-        raise XstackError(f"unknown domain {domain!r} (use uv or image)")
+        raise OptionError(f"unknown domain {domain!r} (use uv or image)")
     if weighting not in WEIGHTINGS:
-        raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
+        raise OptionError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
     if engine not in ENGINES:
-        raise XstackError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
+        raise OptionError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
     realizations = int(realizations)
     if method != "analytic" and realizations < 2:
-        raise XstackError(f"need at least 2 realisations to estimate a scatter, got {realizations}")
+        raise OptionError(f"need at least 2 realisations to estimate a scatter, got {realizations}")
     if domain == "image":
         from xstack.noise.image import estimate_noise_image
 
         if not (region is None or (isinstance(region, str) and region.lower() == "hull")):
-            raise XstackError("region: only the default (hull) is available for images so far; "
-                              "drop --region")
+            raise OptionError("region: only the default (hull) is available for images so far; "
+                              "leave out region=", option="region")
 
         return estimate_noise_image(data, positions, method=method, realizations=realizations,
                                     flux=flux, min_separation_arcsec=min_separation_arcsec,
@@ -352,7 +358,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     for pt in pointings:
         inside_any |= pt.inside(ra_t, dec_t)
     if not inside_any.any():
-        raise XstackError("no target position lies inside a primary beam (above the cutoff)")
+        raise NoDataError("no target position lies inside a primary beam (above the cutoff)")
 
     # ---- position groups -------------------------------------------------------------
     groups_ra, groups_dec, groups_w, groups_s = [], [], [], []
@@ -500,7 +506,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
             prof_m += gsum[:, None] * prof_m_p
             prof_w += gsum[:, None] * wbin[None, :]
     if not any_data:
-        raise XstackError(f"no visibilities left after the uv cuts (uvmin={uvmin}, uvmax={uvmax}) "
+        raise NoDataError(f"no visibilities left after the uv cuts (uvmin={uvmin}, uvmax={uvmax}) "
                           "or all data flagged")
 
     extra: dict[str, Any] = {"weighting": weighting, "uvmin": None if uvmin is None else str(uvmin),

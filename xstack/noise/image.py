@@ -7,7 +7,10 @@ when the image is not corrected, used as is when it is: F = sum_k w_k I_c(x_k) /
 with I_c = I / A (uncorrected image I) or the corrected image itself. Whether the image is
 corrected is read from its header (``XSPBCOR``) and A from the beam file it names
 (``XSPBFILE``: a mosaic's effective beam) unless ``primary_beam`` / ``image_corrected`` say
-otherwise. Monte Carlo injection is analytic, as in the uv-domain: a fake source j of flux
+otherwise. A position is used when it is inside the field by the one rule of every stage
+(:func:`xstack.beams.inside_field`, at the highest frequency of the image's band), so the
+image-domain methods admit the positions the uv-domain ones admit. Monte Carlo injection is
+analytic, as in the uv-domain: a fake source j of flux
 S_j adds S_j A_j PSF(x - x_j) to the uncorrected image (PSF peak 1, same pixel grid), so the
 corrected value at x_k gains sum_j S_j A_j PSF(x_k - x_j) / A_k.
 """
@@ -68,9 +71,9 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
         iy, ix = pix(ra, dec)
         ok = (iy >= 0) & (iy < ny) & (ix >= 0) & (ix < nx)
         ok[ok] &= np.isfinite(img[iy[ok], ix[ok]])
-        if beam is not None:
-            a = atten(ra, dec)
-            ok &= (a >= max(conv.cutoff, 1e-12)) & (a > 0)
+        if conv.inside is not None:
+            # the one rule of every stage (xstack.beams.inside_field at the band edge)
+            ok &= np.asarray(conv.inside(np.degrees(ra), np.degrees(dec)), dtype=bool)
         return ok
 
     ok_t = usable(ra_t, dec_t)

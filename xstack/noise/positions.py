@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from xstack.coords import angular_separation, lm_to_radec, mean_direction, radec_to_lmn
-from xstack.errors import XstackError
+from xstack.errors import OptionError, XstackError, XstackWarning
 
 ARCSEC = np.pi / 180.0 / 3600.0
 
@@ -62,8 +62,8 @@ def _uniform_in_region(n: int, centres: np.ndarray, radii: np.ndarray, region: R
         out_dec.append(dec[ok])
         rate = max(got / tried, 1e-3)
         if got == 0 and tried > 500000:
-            raise XstackError(f"the region ({region.description}) does not overlap the primary "
-                              "beams of the pointings: change --region")
+            raise OptionError(f"the region ({region.description}) does not overlap the primary "
+                              "beams of the pointings: change region=", option="region")
     return np.concatenate(out_ra)[:n], np.concatenate(out_dec)[:n]
 
 
@@ -130,7 +130,8 @@ def random_positions(n: int, realizations: int, centres: np.ndarray, radii: np.n
                 f"{min_separation / ARCSEC:.3g} arcsec from the targets, the avoided sources and "
                 f"each other inside the primary beam{'' if region is None else ' and the region'}"
                 f" (placed {len(kept_ra)}); lower min_separation_arcsec, use fewer positions"
-                f"{'' if region is None else ' or a larger --region'}")
+                f"{'' if region is None else ' or a larger region='}",
+                option=("min_separation_arcsec", "region"))
         out_ra[r] = kept_ra[:n]
         out_dec[r] = kept_dec[:n]
     return out_ra, out_dec
@@ -156,7 +157,7 @@ def _mean_direction(ra: np.ndarray, dec: np.ndarray) -> tuple[float, float]:
     c = mean_direction(ra, dec)
     if c is None:
         raise XstackError("the positions spread over the whole sky: no tangent plane holds them "
-                          "(give --region beam or a polygon / mask)")
+                          "(give region='beam' or a polygon / mask)", option="region")
     return c
 
 
@@ -322,11 +323,11 @@ def hull_region(ra: np.ndarray, dec: np.ndarray, *, min_margin: float = 0.0,
     dec = np.atleast_1d(np.asarray(dec, dtype=np.float64))
     n = ra.size
     if n == 0:
-        raise XstackError("no target to derive a region from (give --region)")
+        raise XstackError("no target to derive a region from (give region=)", option="region")
     ra0, dec0 = _mean_direction(ra, dec)
     if float(angular_separation(ra, dec, ra0, dec0).max()) > np.radians(60):
         raise XstackError("the targets spread over more than 60 deg: no tangent-plane hull "
-                          "(give --region beam, a polygon file or a FITS mask)")
+                          "(give region='beam', a polygon file or a FITS mask)", option="region")
     x, y, _ = _gnomonic(ra, dec, ra0, dec0)
     pts = np.stack([x, y], axis=1)
     uniq = np.unique(np.round(pts, 15), axis=0)
@@ -338,8 +339,10 @@ def hull_region(ra: np.ndarray, dec: np.ndarray, *, min_margin: float = 0.0,
     if d_margin <= 0:
         d_margin = 1.0 * ARCSEC
     if n < HULL_MIN_TARGETS:
-        warnings.warn(f"only {n} targets: their footprint (hull) is poorly defined; give the "
-                      "survey area with --region (polygon file or FITS mask) or --region beam",
+        warnings.warn(XstackWarning(f"only {n} targets: their footprint (hull) is poorly "
+                                    "defined; give the survey area with region=POLYGON "
+                                    "(polygon file or FITS mask) or region='beam'",
+                                    option="region"),
                       stacklevel=3)
     if uniq.shape[0] >= 2:
         link_len = link * s * np.sqrt(max(np.log(n), 1.0) / np.log(2.0))
@@ -377,9 +380,11 @@ def hull_region(ra: np.ndarray, dec: np.ndarray, *, min_margin: float = 0.0,
         polys.append(verts)
         poly_area += _polygon_area(verts[:, 0], verts[:, 1])
     if thin:
-        warnings.warn(f"the {n} targets are (nearly) collinear: their hull has almost no area; "
-                      "give the survey area with --region (polygon file or FITS mask) or "
-                      "--region beam", stacklevel=3)
+        warnings.warn(XstackWarning(f"the {n} targets are (nearly) collinear: their hull has "
+                                    "almost no area; give the survey area with region=POLYGON "
+                                    "(polygon file or FITS mask) or region='beam'",
+                                    option="region"),
+                      stacklevel=3)
     d2 = d_margin * d_margin
 
     def contains(r: np.ndarray, dd: np.ndarray) -> np.ndarray:

@@ -82,7 +82,7 @@ def _row_kernel(r: int, u: np.ndarray, v: np.ndarray, w: np.ndarray, has_w: bool
                 out: np.ndarray) -> None:
     nchan = freq.size
     nsrc = l.size
-    twopi_c = 2.0 * math.pi / 299792458.0
+    twopi_c = 2.0 * math.pi / SPEED_OF_LIGHT
     f0 = freq[0]
     df = freq[1] - freq[0] if nchan > 1 else 0.0
     ur = u[r]
@@ -155,7 +155,7 @@ def _kernel_parallel(u, v, w, has_w, freq, uniform, l, m, nm1, amp, gcoef, has_g
 @numba.njit(nogil=True, cache=True)
 def _kernel_f32(u, v, freq, l, m, amp, out):
     """float32 phases, direct sincos per channel, no w-term / Gaussian (benchmark path)."""
-    twopi_c = np.float32(2.0 * math.pi / 299792458.0)
+    twopi_c = np.float32(2.0 * math.pi / SPEED_OF_LIGHT)
     for r in range(u.size):
         ur = np.float32(u[r])
         vr = np.float32(v[r])
@@ -169,7 +169,7 @@ def _kernel_f32(u, v, freq, l, m, amp, out):
 @numba.njit(nogil=True, cache=True)
 def _antenna_phasors(ut, vt, wt, has_w, freq, uniform, lk, mk, nk, E):
     """E[a, c] = exp(+2 pi i (u_a l + v_a m + w_a (n-1)) nu_c / c) for one source and time."""
-    twopi_c = 2.0 * math.pi / 299792458.0
+    twopi_c = 2.0 * math.pi / SPEED_OF_LIGHT
     nchan = freq.size
     f0 = freq[0]
     df = freq[1] - freq[0] if nchan > 1 else 0.0

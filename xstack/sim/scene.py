@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack._vocabulary import DEFAULT_PB_CUTOFF
 from xstack.errors import XstackError
 from xstack.sim.counts import FluxDistribution, flux_from_value
 
@@ -106,7 +107,7 @@ class Effects:
     """Opt-in effects. Each step runs only if asked for (``docs/sim.md``)."""
 
     primary_beam: str = "none"
-    pb_cutoff: float = 0.1
+    pb_cutoff: float = DEFAULT_PB_CUTOFF
     w_term: bool = False
     noise: NoiseSpec | None = None
     flagging: FlaggingSpec | None = None

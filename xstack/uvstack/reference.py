@@ -15,7 +15,7 @@ import numpy as np
 import xarray as xr
 
 from xstack._select import PARALLEL_HANDS
-from xstack.beams import standard_beam
+from xstack.beams import DEFAULT_PB_CUTOFF, dish_diameter, standard_beam
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
 
 
@@ -35,7 +35,7 @@ def unit_vectors(ra: np.ndarray, dec: np.ndarray, ra0: float, dec0: float) -> np
 
 def reference_uvstack(partitions: list[tuple[str, xr.Dataset]], ra_deg: Any, dec_deg: Any, *,
                       weighting: str = "none", primary_beam: str = "none",
-                      pb_cutoff: float = 0.1, column_weight: Any = None, sigma: Any = None,
+                      pb_cutoff: float = DEFAULT_PB_CUTOFF, column_weight: Any = None, sigma: Any = None,
                       uvmin: Any = None, uvmax: Any = None) -> dict[str, Any]:
     """Stack in plain numpy; returns ``flux_jy``, ``flux_err_jy``, ``n_visibilities``,
     ``stacked`` (name -> complex128 VISIBILITY array) and ``sum_weight`` (name -> sum W_l).
@@ -71,7 +71,7 @@ def reference_uvstack(partitions: list[tuple[str, xr.Dataset]], ra_deg: Any, dec
             att = np.ones((ra.size, freq.size))
             inside = s[:, 2] > 0
         else:
-            dish = float(np.median(ds["DISH_DIAMETER"].values))
+            dish = dish_diameter(ds)
             model = None if primary_beam == "auto" else primary_beam
             beam = standard_beam(str(ds.attrs["telescope_name"]), dish, model=model)
             att = np.array([[float(beam(t, f)) for f in freq] for t in theta])

@@ -23,11 +23,12 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from xstack.errors import XstackError
+from xstack import _vocabulary
+from xstack.errors import OptionError
 from xstack.smearing import mean_factors
 
 #: ``smearing=`` choices of :func:`xstack.uvstack.uvstack`.
-MODES = ("auto", "correct", "none")
+MODES = _vocabulary.SMEARING_MODES
 #: Rows (time x baseline) sampled per partition for the loss; all rows when fewer.
 MAX_ROWS = 10_000
 #: A used position losing more than this fraction of its flux to smearing gets a warning.
@@ -39,7 +40,7 @@ _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 def check_mode(mode: Any) -> str:
     """Validate a ``smearing=`` value; raise :class:`XstackError` otherwise."""
     if mode not in MODES:
-        raise XstackError(f"unknown smearing {mode!r} (use {', '.join(MODES)})")
+        raise OptionError(f"unknown smearing {mode!r} (use {', '.join(MODES)})")
     return str(mode)
 
 

@@ -26,11 +26,12 @@ import numpy as np
 import xarray as xr
 from astropy.table import Table
 
+from xstack import _vocabulary
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack._select import parallel_hand_mask, sky_correlations
-from xstack.beams import standard_beam
+from xstack.beams import DEFAULT_PB_CUTOFF, dish_diameter, inside_field, standard_beam
 from xstack.coords import (
     SPEED_OF_LIGHT,
     angular_separation,
@@ -39,14 +40,15 @@ from xstack.coords import (
     radec_to_lmn,
     read_catalog,
 )
-from xstack.errors import XstackError
+from xstack.errors import NoDataError, OptionError, XstackError, XstackWarning
 from xstack.schema import default_time_chunk, iter_partitions, open_store
 from xstack.uvstack import kernels
 from xstack.uvstack import smearing as _smearing
 from xstack.uvstack.profile import plot_uv_profile, uv_profile  # noqa: F401  (public re-export)
 
-WEIGHTINGS = ("none", "pb", "sigma2", "column")
-ENGINES = ("auto", "antenna", "numba", "numpy", "nufft")
+WEIGHTINGS = _vocabulary.UVSTACK_WEIGHTINGS
+ENGINES = _vocabulary.UVSTACK_ENGINES
+ERRORS = _vocabulary.UVSTACK_ERRORS
 #: Engines that evaluate a block of rows, in the order of their row counters in the sums
 #: (after the _NSUMS flux sums of :func:`kernels.stack_sums`) and their codes in the trailing
 #: column of a chunk's shared phasor.
@@ -267,7 +269,7 @@ def _beam_for(primary_beam: Any, ds: xr.Dataset, cutoff: float):
         return lambda theta, l, m, f: primary_beam.attenuation(l, m, f)
     name = str(primary_beam).lower()
     telescope = str(ds.attrs.get("telescope_name", "unknown"))
-    dish = float(np.median(ds["DISH_DIAMETER"].values)) if "DISH_DIAMETER" in ds else 25.0
+    dish = dish_diameter(ds)
     if name == "auto":
         beam = standard_beam(telescope, dish, cutoff=cutoff)
     elif name in ("airy", "gaussian", "none"):
@@ -478,8 +480,8 @@ def _geometry(ds, ra, dec, beam_spec, cutoff):
     is_none = isinstance(beam_spec, str) and beam_spec.lower() == "none"
     used = n > 0
     if not is_none:
-        # enters the pointing only if A >= cutoff in every channel (docs/uvstack.md)
-        used &= np.all(att >= cutoff, axis=1) & (cutoff > 0 or np.all(att > 0, axis=1))
+        # the one rule (xstack.beams.inside_field): A >= cutoff at the highest channel
+        used &= inside_field(lambda t, f: beam(t, l, m, np.array([f]))[:, 0], theta, freq, cutoff)
     return l, m, n1, att, att_ref, used
 
 
@@ -664,7 +666,7 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
 # --- public API ---------------------------------------------------------------------------
 
 def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: Any = "auto",
-            pb_cutoff: float = 0.1, uvmin: Any = None, uvmax: Any = None, sigma: Any = None,
+            pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None, sigma: Any = None,
             noise_image: Any = None, polarizations: Any = "parallel", engine: str = "auto",
             out: str | os.PathLike | None = None, overwrite: bool = False,
             progress: bool = False, antenna_tol_rad: float = ANTENNA_TOL_RAD,
@@ -757,13 +759,13 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     from xstack._progress import dask_progress
 
     if weighting not in WEIGHTINGS:
-        raise XstackError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
+        raise OptionError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
     if engine not in ENGINES:
-        raise XstackError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
+        raise OptionError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
     _smearing.check_mode(smearing)
     engine_used = engine
     if not 0 <= float(pb_cutoff) < 1:
-        raise XstackError(f"pb_cutoff must be in [0, 1), got {pb_cutoff}")
+        raise OptionError(f"pb_cutoff must be in [0, 1), got {pb_cutoff}")
     lo, hi = _uv_limits(uvmin, uvmax)
     table = _positions_table(positions)
     npos = len(table)
@@ -787,8 +789,9 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             from xstack.uvstack.localnoise import measure_local_noise
 
             if "sigma" in table.colnames:
-                warnings.warn("the catalog's sigma column is ignored: sigma_k are measured in "
-                              "noise_image", stacklevel=2)
+                warnings.warn(XstackWarning("the catalog's sigma column is ignored: sigma_k "
+                                            "are measured in noise_image",
+                                            option="noise_image"), stacklevel=2)
             noise = measure_local_noise(noise_image, table)
             # rows without an estimate get weight 0 here; a used one is an error below
             sig = np.where(np.isfinite(noise.sigma), noise.sigma, np.inf)
@@ -836,7 +839,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     for p in plans:
         covered |= p.used
     if not covered.any():
-        raise XstackError(f"none of the {npos} positions lies inside a pointing "
+        raise NoDataError(f"none of the {npos} positions lies inside a pointing "
                           f"(primary-beam cutoff {pb_cutoff})")
     if noise is not None:
         missing = np.flatnonzero(covered & ~np.isfinite(noise.sigma))
@@ -848,7 +851,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
                       "stacked (see StackResult.uncovered)", stacklevel=2)
     active = [p for p in plans if p.sum_weight > 0]
     if not active:
-        raise XstackError("all position weights are zero: nothing to stack")
+        raise NoDataError("all position weights are zero: nothing to stack")
     used_pos = np.zeros(npos, dtype=bool)
     for p in active:
         used_pos |= p.used & (p.weight > 0)
@@ -858,8 +861,9 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         (float(ra[used_pos][0]), float(dec[used_pos][0]))
     worst = max(float(p.smearing_loss.max(initial=0.0)) for p in active)
     if worst > _smearing.WARN_LOSS:
-        warnings.warn(f"smearing costs up to {100 * worst:.0f}% of a position's flux (corrected "
-                      "to first order; --smearing none to leave it)", stacklevel=2)
+        warnings.warn(XstackWarning(f"smearing costs up to {100 * worst:.0f}% of a position's "
+                                    "flux (corrected to first order; smearing='none' to leave "
+                                    "it)", option="smearing"), stacklevel=2)
     options = {
         "weighting": weighting,
         "primary_beam": beam_spec.path if isinstance(beam_spec, FitsBeam) else str(primary_beam),
@@ -896,7 +900,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         den = sum(s_p * s[1] for s_p, s in zip(scale, sums))
         nvis = int(round(sum(s[4] for s in sums)))
         if not den > 0 or nvis == 0:
-            raise XstackError("no unflagged visibility with positive weight in the selected "
+            raise NoDataError("no unflagged visibility with positive weight in the selected "
                               "polarizations and uv range")
         var_w = sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))
         # the same variance with the noise measured per block in place of 1/WEIGHT
@@ -952,10 +956,13 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     sums = measured["sums"]
     ratio = measured["flux_err_empirical_jy"] / measured["flux_err_jy"]
     if np.isfinite(ratio) and abs(ratio - 1) > EMPIRICAL_TOLERANCE:
-        warnings.warn(f"uv-stack flux error from WEIGHT ({measured['flux_err_jy']:.3g} Jy) and from "
-                      f"the visibility scatter ({measured['flux_err_empirical_jy']:.3g} Jy) differ "
-                      f"by {ratio:.3g}x: the weights are mis-scaled; choose the error printed with "
-                      "--errors (flux_err_jy / flux_err_empirical_jy)", stacklevel=2)
+        warnings.warn(XstackWarning(
+            f"uv-stack flux error from WEIGHT ({measured['flux_err_jy']:.3g} Jy) and from the "
+            f"visibility scatter ({measured['flux_err_empirical_jy']:.3g} Jy) differ by "
+            f"{ratio:.3g}x: the weights are mis-scaled; choose the error printed first with "
+            "errors='weights' (flux_err_jy) or errors='empirical' (flux_err_empirical_jy)",
+            option="errors"),
+            stacklevel=2)
     return StackResult(stacked=stacked, flux_jy=measured["flux_jy"],
                        flux_err_jy=measured["flux_err_jy"], n_positions=n_positions,
                        n_visibilities=measured["n_visibilities"], positions=pos, options=options,

@@ -1,0 +1,40 @@
+"""Shared vocabulary of the options: the names each stage accepts, and shared defaults.
+
+One home for what both the library and the command line spell: the stage modules validate
+against these tuples and the CLI offers them as ``choices`` (imported, never retyped). The
+module imports nothing, so building the command-line parsers stays cheap. Public homes
+re-export them: :data:`xstack.beams.DEFAULT_PB_CUTOFF`, ``xstack.uvstack.stack.WEIGHTINGS``...
+"""
+
+from __future__ import annotations
+
+#: Default attenuation below which a position is taken to be outside a pointing
+#: (public home: :data:`xstack.beams.DEFAULT_PB_CUTOFF`).
+DEFAULT_PB_CUTOFF = 0.1
+
+# uv-stacking (xstack.uvstack.stack)
+UVSTACK_WEIGHTINGS = ("none", "pb", "sigma2", "column")
+UVSTACK_ENGINES = ("auto", "antenna", "numba", "numpy", "nufft")
+UVSTACK_ERRORS = ("auto", "weights", "empirical")
+SMEARING_MODES = ("auto", "correct", "none")
+
+# image-stacking (xstack.imstack)
+IMSTACK_METHODS = ("mean", "median")
+IMSTACK_WEIGHTINGS = ("sigma2", "pb", "none", "column")
+SUBPIXEL_METHODS = ("fourier", "spline")
+CUBE_FORMATS = ("zarr", "fits")
+
+# noise (xstack.noise.estimate)
+NOISE_METHODS = ("analytic", "mc", "random", "bootstrap")
+NOISE_ENGINES = ("auto", "antenna", "row")
+NOISE_WEIGHTINGS = ("none", "pb", "column")
+NOISE_PRIMARY_BEAMS = ("auto", "airy", "gaussian", "none")
+
+# imaging (xstack.imaging)
+IMAGE_WEIGHTINGS = ("natural", "uniform", "briggs")
+CLEAN_ALGORITHMS = ("hogbom", "clark")
+SUBTRACT_PRIMARY_BEAMS = ("standard", "airy", "gaussian", "none")
+
+# fitting (xstack.fit)
+FIT_MODELS = ("point", "gaussian")
+NOISE_CORRELATIONS = ("psf", "residual", "none")

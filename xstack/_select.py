@@ -56,3 +56,52 @@ def sky_correlations(ds: xr.Dataset, autocorrelations: bool = False) -> xr.Datas
     """The partition as a sky-measuring stage should read it: autocorrelations flagged unless
     ``autocorrelations`` is True."""
     return ds if autocorrelations else without_autocorrelations(ds)
+
+
+#: A uv-distance limit: (value, "m") or (value, "lambda"), as :func:`xstack.coords.parse_distance`
+UVLimit = tuple[float, str]
+
+
+def parse_uv_limit(value: Any) -> UVLimit | None:
+    """``None``, a number (metres), a string with units (``5000m``, ``23.8klambda``) or a
+    ``(value, unit)`` pair."""
+    from xstack.coords import parse_distance
+
+    if value is None:
+        return None
+    if isinstance(value, tuple) and len(value) == 2:
+        return float(value[0]), str(value[1])
+    return parse_distance(value)
+
+
+def uv_limits(uvmin: Any, uvmax: Any) -> tuple[UVLimit | None, UVLimit | None]:
+    """Both limits parsed; an error when uvmin >= uvmax in the same unit."""
+    from xstack.errors import OptionError
+
+    lo, hi = parse_uv_limit(uvmin), parse_uv_limit(uvmax)
+    if lo is not None and hi is not None and lo[1] == hi[1] and lo[0] >= hi[0]:
+        raise OptionError(f"uvmin ({uvmin}) must be smaller than uvmax ({uvmax})",
+                          option=("uvmin", "uvmax"))
+    return lo, hi
+
+
+def uv_range_mask(uvw: np.ndarray, frequency: np.ndarray, uvmin: UVLimit | None,
+                  uvmax: UVLimit | None) -> np.ndarray | None:
+    """Boolean (nrow, nchan) mask of visibilities with uvmin <= sqrt(u^2 + v^2) <= uvmax.
+
+    Limits in metres or wavelengths (:func:`parse_uv_limit`); None when there is no cut.
+    """
+    from xstack.coords import SPEED_OF_LIGHT
+
+    if uvmin is None and uvmax is None:
+        return None
+    q_m = np.hypot(uvw[:, 0], uvw[:, 1])[:, None]
+    q_lam = q_m * (np.asarray(frequency)[None, :] / SPEED_OF_LIGHT)
+    mask = np.ones((uvw.shape[0], len(frequency)), dtype=bool)
+    for limit, above in ((uvmin, True), (uvmax, False)):
+        if limit is None:
+            continue
+        value, unit = limit
+        q = q_m if unit == "m" else q_lam
+        mask &= (q >= value) if above else (q <= value)
+    return mask

@@ -14,7 +14,12 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from xstack._select import PARALLEL_HANDS, sky_correlations
+from xstack._select import (  # noqa: F401  (parse_uv_limit, uv_range_mask: re-exported)
+    PARALLEL_HANDS,
+    parse_uv_limit,
+    sky_correlations,
+    uv_range_mask,
+)
 from xstack.errors import XstackError
 
 #: Visibilities per block when a partition is not dask-backed.
@@ -99,37 +104,3 @@ def stokes_i_blocks(ds: xr.Dataset, name: str = "partition"
         wt = np.where(bad, 0.0, wt)
         vis = np.where(bad, 0.0, vis)
         yield (uvw, vis.reshape(-1, nchan, pidx.size), wt.reshape(-1, nchan, pidx.size))
-
-
-def uv_range_mask(uvw: np.ndarray, frequency: np.ndarray, uvmin: tuple[float, str] | None,
-                  uvmax: tuple[float, str] | None) -> np.ndarray | None:
-    """Boolean (nrow, nchan) mask of visibilities inside [uvmin, uvmax]; None if no cut.
-
-    Limits are ``(value, "m"|"lambda")`` as returned by :func:`xstack.coords.parse_distance`;
-    the uv distance is q = sqrt(u^2 + v^2).
-    """
-    from xstack.coords import SPEED_OF_LIGHT
-
-    if uvmin is None and uvmax is None:
-        return None
-    q_m = np.hypot(uvw[:, 0], uvw[:, 1])[:, None]
-    q_lam = q_m * (np.asarray(frequency)[None, :] / SPEED_OF_LIGHT)
-    mask = np.ones((uvw.shape[0], len(frequency)), dtype=bool)
-    for limit, above in ((uvmin, True), (uvmax, False)):
-        if limit is None:
-            continue
-        value, unit = limit
-        q = q_m if unit == "m" else q_lam
-        mask &= (q >= value) if above else (q <= value)
-    return mask
-
-
-def parse_uv_limit(value: Any) -> tuple[float, str] | None:
-    """``None``, a number (metres), a string with units or a ``(value, unit)`` pair."""
-    from xstack.coords import parse_distance
-
-    if value is None:
-        return None
-    if isinstance(value, tuple) and len(value) == 2:
-        return float(value[0]), str(value[1])
-    return parse_distance(value)

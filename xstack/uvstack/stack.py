@@ -30,13 +30,11 @@ from xstack import _vocabulary
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
 from xstack._scatter import EMPIRICAL_TOLERANCE
-from xstack._select import parallel_hand_mask, sky_correlations
+from xstack._select import parallel_hand_mask, sky_correlations, uv_limits, uv_range_mask
 from xstack.beams import DEFAULT_PB_CUTOFF, dish_diameter, inside_field, standard_beam
 from xstack.coords import (
-    SPEED_OF_LIGHT,
     angular_separation,
     mean_direction,
-    parse_distance,
     radec_to_lmn,
     read_catalog,
 )
@@ -294,27 +292,6 @@ def _pol_mask(ds: xr.Dataset, polarizations: Any, where: str) -> np.ndarray:
     return mask
 
 
-def _uv_limits(uvmin: Any, uvmax: Any) -> tuple[tuple[float, str] | None, tuple[float, str] | None]:
-    lo = parse_distance(uvmin) if uvmin is not None else None
-    hi = parse_distance(uvmax) if uvmax is not None else None
-    if lo is not None and hi is not None and lo[1] == hi[1] and lo[0] >= hi[0]:
-        raise XstackError(f"uvmin ({uvmin}) must be smaller than uvmax ({uvmax})")
-    return lo, hi
-
-
-def uv_mask(uvw: np.ndarray, frequency: np.ndarray, lo, hi) -> np.ndarray | None:
-    """Boolean (nrow, nchan) of visibilities with lo <= sqrt(u^2+v^2) <= hi (m or lambda)."""
-    if lo is None and hi is None:
-        return None
-    q_m = np.hypot(uvw[:, 0], uvw[:, 1])[:, None]
-    q_l = q_m * (np.asarray(frequency)[None, :] / SPEED_OF_LIGHT)
-    mask = np.ones((uvw.shape[0], len(frequency)), dtype=bool)
-    for lim, op in ((lo, np.greater_equal), (hi, np.less_equal)):
-        if lim is not None:
-            mask &= op(q_m if lim[1] == "m" else q_l, lim[0])
-    return mask
-
-
 # --- block functions (top level: picklable for dask.distributed) ---------------------------
 
 def _block_phasor(uvw_block, params, frequency, engine, antennas=None, rows=None,
@@ -418,7 +395,7 @@ def _block_sums_with_phasor(vis, weight, flag, uvw, ph, frequency, pol_mask, lo,
     n = nt * nb
     noise = _block_noise(vis, weight, flag, pol_mask)
     vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
-    mask = uv_mask(uvw.reshape(n, 3), frequency, lo, hi)
+    mask = uv_range_mask(uvw.reshape(n, 3), frequency, lo, hi)
     ph = ph.reshape(n, nc + 1)
     total = _finish_empirical(kernels.stack_sums(vis, weight, flag, ph[:, :nc], pol_mask, mask,
                                                  noise))
@@ -443,7 +420,7 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
         ph, used = _block_phasor(x.reshape(nt, nb, 3), params, frequency, engine,
                                  _antennas(a1, a2, bsl), rows=rows, tol_rad=tol_rad)
         counts[used] = counts.get(used, 0) + n
-        mask = uv_mask(x, frequency, lo, hi)
+        mask = uv_range_mask(x, frequency, lo, hi)
         total += kernels.stack_sums(v, w, f, ph.reshape(n, nc), pol_mask, mask,
                                     None if noise is None else noise[bsl])
     return np.concatenate([_finish_empirical(total), _engine_rows(counts)])[None, None, :]
@@ -490,7 +467,7 @@ def _block_weight_total(weight, flag, uvw, frequency, pol_mask, lo, hi):
     correlations, weight > 0, uv range)."""
     nt, nb, nc, npol = weight.shape
     w = np.where(flag | ~(weight > 0), 0.0, weight.astype(np.float64))[..., pol_mask]
-    mask = uv_mask(uvw.reshape(nt * nb, 3), frequency, lo, hi)
+    mask = uv_range_mask(uvw.reshape(nt * nb, 3), frequency, lo, hi)
     if mask is not None:
         w = w * mask.reshape(nt, nb, nc)[..., None]
     return np.array([[[np.nansum(w)]]])
@@ -563,7 +540,7 @@ def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, 
         L, L_ref = _smearing.loss_factors(
             ds, l[sel], m[sel], n1[sel], bandwidth=effects[0], time=effects[1],
             pol_mask=_pol_mask(ds, polarizations, name),
-            uv_select=lambda x, f: uv_mask(x, f, smearing[1], smearing[2]))
+            uv_select=lambda x, f: uv_range_mask(x, f, smearing[1], smearing[2]))
         smear_loss[sel] = 1.0 - L_ref
         coef = w[sel, None] / (att[sel] * L) / total
         params = np.column_stack([l[sel], m[sel], n1[sel], coef])
@@ -766,7 +743,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     engine_used = engine
     if not 0 <= float(pb_cutoff) < 1:
         raise OptionError(f"pb_cutoff must be in [0, 1), got {pb_cutoff}")
-    lo, hi = _uv_limits(uvmin, uvmax)
+    lo, hi = uv_limits(uvmin, uvmax)
     table = _positions_table(positions)
     npos = len(table)
     ra = np.radians(np.asarray(table["ra"], dtype=np.float64))

@@ -34,7 +34,9 @@ DEMO_SCENE: dict[str, Any] = {
     "name": "xstack-demo",
     "description": "VLA A, 1.4 GHz, 1 h: 3 bright sources and 60 faint targets in 4' x 4'",
     "array": {"config": "vla.a"},
-    "observation": {"date": "2014-01-01", "hour_angle": [-0.5, 0.5], "integration": 60.0,
+    # a 1 h track: 1 h of hour angle is 3590 s of time, so +-0.51 h holds all 60 integrations
+    # on one day (+-0.5 h would put the last one on the next day)
+    "observation": {"date": "2014-01-01", "hour_angle": [-0.51, 0.51], "integration": 60.0,
                     "time_per_pointing": 3600.0},
     "spectral": {"centre": 1.4e9, "bandwidth": 128e6, "channels": 4,
                  "polarizations": ["RR", "LL"]},

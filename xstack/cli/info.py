@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from typing import Any
 
 
@@ -120,12 +119,13 @@ def image_lines(d: dict[str, Any]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from xstack.cli import emit_json
+    from xstack.cli._output import result
     from xstack.info import info
 
     d = info(args.path, datacolumn=args.datacolumn)
     if args.json:
         emit_json(d)
         return 0
-    lines = image_lines(d) if d["kind"] == "fits" else data_lines(d)
-    sys.stdout.write("\n".join(lines) + "\n")
+    # through the common output (stdout, and the --log file)
+    result(*(image_lines(d) if d["kind"] == "fits" else data_lines(d)))
     return 0

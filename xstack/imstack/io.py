@@ -350,7 +350,7 @@ def _model_beam(info: ImageInfo, pb: Any) -> tuple[Any, str]:
     if pb is None:
         if tel not in DISH_DIAMETERS:
             return None, (f"{info.name}: no primary beam known (TELESCOP {info.telescope!r}, "
-                          f"frequency {info.frequency_hz}); give pb= / --pb")
+                          f"frequency {info.frequency_hz}); give pb=")
         return standard_beam(tel, DISH_DIAMETERS[tel]), ""
     if tel not in DISH_DIAMETERS:
         raise XstackError(f"{info.name}: primary beam {pb!r} needs a known TELESCOP "
@@ -455,7 +455,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
     if pb_file is not None and info.path is not None:
         if not pb_file.exists():
             conv.missing = (f"{info.name}: its primary beam {pb_file} (XSPBFILE) is missing; keep "
-                            "it beside the image or give the beam with pb= / --pb")
+                            "it beside the image or give the beam with pb=")
             return conv
         pbimg = read_image(pb_file, name=f"primary beam {pb_file}")
         if pbimg.shape != info.shape:
@@ -468,7 +468,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         return conv
     if int(header.get("XSMOSAIC", 1) or 1) > 1:
         conv.missing = (f"{info.name}: a mosaic whose effective primary beam is not given (no "
-                        "XSPBFILE); give its beam image (OUT.pb.fits) with pb= / --pb")
+                        "XSPBFILE); give its beam image (OUT.pb.fits) with pb=")
         return conv
     model, why = _model_beam(info, None)
     if model is None:

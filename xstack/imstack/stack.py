@@ -378,7 +378,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         # the beam travels with the image)
         if weighting == "pb" or not conv.corrected or conv.from_image:
             if conv.values is None:
-                raise XstackError(conv.missing or f"{info.name}: no primary beam known; give pb=")
+                raise XstackError(conv.missing or f"{info.name}: no primary beam known; give pb=",
+                                  option="pb")
             atten[:, i] = np.asarray(conv.values(ra, dec), dtype=np.float64)
         # whenever a beam is known, the one rule of every stage decides "inside the field"
         # (xstack.beams.inside_field at the image's band edge, docs/conventions.md)

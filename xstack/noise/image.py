@@ -50,7 +50,8 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
                       image_corrected, cutoff=pb_cutoff,
                       how_to_state="image_corrected=True/False (or XSPBCOR = T/F in its header)")
     if conv.values is None and (weighting == "pb" or not conv.corrected):
-        raise XstackError(conv.missing or f"{info.name}: no primary beam known; give primary_beam=")
+        raise XstackError(conv.missing or f"{info.name}: no primary beam known; give primary_beam=",
+                          option="primary_beam")
     beam = conv.values  # (ra_deg, dec_deg) -> A, or None (unknown: A = 1 for a corrected image)
     pra, pdec = np.radians(info.pointing_deg[0]), np.radians(info.pointing_deg[1])
 

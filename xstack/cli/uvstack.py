@@ -99,8 +99,8 @@ def first_error(res: Any, errors: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from xstack._atomic import atomic_output, check_output
+    from xstack._inputs import Positions
     from xstack.cli import emit_json
-    from xstack.coords import read_catalog
     from xstack.uvstack.stack import plot_uv_profile, uv_profile, uvstack
 
     if len(args.inputs) < 3:
@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
             raise XstackError("--noise-image needs --weighting sigma2")
         if not Path(args.noise_image).is_file():
             raise XstackError(f"{args.noise_image}: no such noise image (a FITS file)")
-    positions = read_catalog(catalog)
+    positions = Positions.from_any(catalog)
     pols: Any = args.polarizations
     if pols not in ("parallel", "all"):
         pols = [p.strip() for p in pols.split(",") if p.strip()]

@@ -6,14 +6,13 @@ its own weight; flagged, non-finite or non-positive-weight visibilities get weig
 
 from __future__ import annotations
 
-import os
-from collections.abc import Iterator, Mapping
-from pathlib import Path
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import xarray as xr
 
+from xstack._inputs import partitions
 from xstack._select import (  # noqa: F401  (parse_uv_limit, uv_range_mask: re-exported)
     PARALLEL_HANDS,
     parse_uv_limit,
@@ -27,35 +26,12 @@ _BLOCK_VIS = 4_000_000
 
 
 def as_partitions(data: Any, autocorrelations: bool = False) -> list[tuple[str, xr.Dataset]]:
-    """Normalise a store path, DataTree, mapping of Datasets or a Dataset to partitions.
+    """Normalise any visibility input to validated partitions (:func:`xstack._inputs.partitions`).
 
-    Objects with a ``stacked`` attribute (e.g. a ``StackResult``) are unwrapped. Unless
-    ``autocorrelations``, autocorrelation baselines come back flagged
+    Unless ``autocorrelations``, autocorrelation baselines come back flagged
     (:func:`xstack._select.sky_correlations`): they do not measure the sky.
     """
-    from xstack.schema import iter_partitions, open_store, validate_partition
-
-    if hasattr(data, "stacked") and not isinstance(data, (xr.Dataset, xr.DataTree, Mapping)):
-        data = data.stacked
-    if isinstance(data, (str, os.PathLike)):
-        path = Path(data)
-        if not path.exists():
-            raise XstackError(f"{path}: no such store")
-        data = open_store(path)
-    if isinstance(data, xr.DataTree):
-        parts = list(iter_partitions(data))
-    elif isinstance(data, xr.Dataset):
-        parts = [("partition", data)]
-    elif isinstance(data, Mapping):
-        parts = [(str(k), v) for k, v in data.items()]
-    else:
-        raise XstackError(f"cannot read visibilities from a {type(data).__name__} "
-                          "(give a store path, DataTree, Dataset or dict of Datasets)")
-    if not parts:
-        raise XstackError("no partitions with visibilities")
-    for name, ds in parts:
-        validate_partition(ds, name)
-    return [(name, sky_correlations(ds, autocorrelations)) for name, ds in parts]
+    return partitions(data, autocorrelations=autocorrelations)
 
 
 def parallel_hand_index(ds: xr.Dataset, name: str = "partition") -> np.ndarray:

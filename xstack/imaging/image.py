@@ -151,20 +151,9 @@ class ImageResult:
 
 # --------------------------------------------------------------------------- selection
 def _as_partitions(data: Any) -> list[tuple[str, xr.Dataset]]:
-    from xstack.schema import iter_partitions, open_store, validate_partition
+    from xstack._inputs import partitions
 
-    if isinstance(data, xr.Dataset):
-        validate_partition(data)
-        return [("partition", data)]
-    if isinstance(data, xr.DataTree):
-        return list(iter_partitions(data))
-    if isinstance(data, (str, os.PathLike)):
-        return list(iter_partitions(open_store(data)))
-    if isinstance(data, dict):
-        return list(data.items())
-    if isinstance(data, (list, tuple)) and all(isinstance(p, tuple) and len(p) == 2 for p in data):
-        return list(data)  # (name, Dataset) pairs, as select_partitions returns them
-    raise XstackError(f"cannot image a {type(data).__name__}: give a store path, DataTree or Dataset")
+    return partitions(data)
 
 
 def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, *,

@@ -132,7 +132,8 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     Parameters
     ----------
     data
-        Input store path (or DataTree).
+        Input store or MeasurementSet path, DataTree, Dataset or dict of Datasets (any input
+        of :func:`xstack._inputs.partitions`).
     model
         Component catalog (path or astropy Table; columns ra, dec, flux [Jy], optional
         fwhm_arcsec) or a CLEAN model FITS image (Jy/pixel) on a SIN grid whose reference
@@ -161,22 +162,25 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     import dask.array as da
 
     from xstack._atomic import check_output
+    from xstack._inputs import is_ms, open_input, partitions
     from xstack.beams import dish_diameter, standard_beam
     from xstack.coords import angular_separation, radec_to_lmn
-    from xstack.schema import iter_partitions, open_store, validate_store, write_store
+    from xstack.schema import validate_store, write_store
 
     check_output(out, overwrite)
-    if isinstance(data, xr.DataTree):
-        tree, root_attrs = data, dict(data.attrs)
+    if isinstance(data, (str, os.PathLike)):
+        tree = open_input(data)
+        root_attrs = dict(tree.attrs) if is_ms(data) else validate_store(data)
+        if Path(out).resolve() == Path(data).resolve():
+            raise XstackError("output store must differ from the input store")
+        data = tree
     else:
-        root_attrs = validate_store(data)
-        tree = open_store(data)
-    if Path(out).resolve() == (Path(data).resolve() if not isinstance(data, xr.DataTree) else None):
-        raise XstackError("output store must differ from the input store")
+        root_attrs = dict(data.attrs) if isinstance(data, xr.DataTree) else {}
+    parts = partitions(data)
     kind = _model_kind(model)
     spec = _load_catalog(model) if kind == "catalog" else _load_image(model)
     result: dict[str, xr.Dataset] = {}
-    for name, ds in iter_partitions(tree):
+    for name, ds in parts:
         pols = [i for i, p in enumerate(ds["polarization"].values) if str(p).upper() in PARALLEL_HANDS]
         if not pols:
             raise XstackError(f"{name}: no parallel-hand polarization to subtract a Stokes I model from")

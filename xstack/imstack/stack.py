@@ -21,8 +21,9 @@ from astropy.table import Table
 
 from xstack import __version__, _vocabulary
 from xstack._atomic import atomic_output, check_output
+from xstack._inputs import Positions
 from xstack._progress import progress_iter
-from xstack.coords import SPEED_OF_LIGHT, parse_distance, read_catalog
+from xstack.coords import SPEED_OF_LIGHT, parse_distance
 from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.imstack import kernels
 from xstack.imstack.io import (
@@ -141,19 +142,9 @@ class ImstackResult:
 # ---------------------------------------------------------------------------------------------
 
 def _positions(positions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(ra, dec) in degrees and the optional catalog weight column."""
-    if isinstance(positions, (str, os.PathLike, Table)):
-        table = read_catalog(positions)
-        w = np.asarray(table["weight"], dtype=np.float64) if "weight" in table.colnames else None
-        return np.asarray(table["ra"], np.float64), np.asarray(table["dec"], np.float64), w
-    arr = np.asarray(positions, dtype=np.float64)
-    if arr.ndim == 1 and arr.size == 2:
-        arr = arr[None, :]
-    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
-        raise XstackError("positions: give a catalog file/Table or an (N, 2) array of (ra, dec) deg")
-    if not np.isfinite(arr).all() or np.any(np.abs(arr[:, 1]) > 90):
-        raise XstackError("positions: non-finite value or |dec| > 90 deg")
-    return np.mod(arr[:, 0], 360.0), arr[:, 1], None
+    """(ra, dec) in degrees and the optional catalog weight column (:class:`~xstack._inputs.Positions`)."""
+    pos = Positions.from_any(positions)
+    return pos.ra_deg, pos.dec_deg, pos.weight
 
 
 def _as_list(value: Any, n: int, what: str) -> list[Any]:

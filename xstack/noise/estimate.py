@@ -25,6 +25,7 @@ import numpy as np
 
 from xstack import _vocabulary
 from xstack._antenna import MIN_ROWS_PER_ANTENNA
+from xstack._inputs import Positions
 from xstack._json import finite_or_none
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack.beams import (
@@ -34,7 +35,7 @@ from xstack.beams import (
     inside_field,
     standard_beam,
 )
-from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn, read_catalog
+from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn
 from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.noise import kernels
@@ -119,18 +120,9 @@ class NoiseResult:
 # ----------------------------------------------------------------------------- inputs
 
 def _positions_from(positions: Any) -> tuple[np.ndarray, np.ndarray, Any]:
-    """(ra, dec) in radians and the catalog table (or None) from any positions input."""
-    from astropy.table import Table
-
-    if isinstance(positions, (str, os.PathLike, Table)):
-        cat = read_catalog(positions)
-        return np.radians(cat["ra"]), np.radians(cat["dec"]), cat
-    if isinstance(positions, tuple) and len(positions) == 2:
-        ra, dec = (np.atleast_1d(np.asarray(x, dtype=np.float64)) for x in positions)
-        if ra.shape != dec.shape or ra.size == 0:
-            raise XstackError("positions: ra and dec must be non-empty arrays of equal length")
-        return np.radians(ra), np.radians(dec), None
-    raise XstackError("positions must be a catalog path, an astropy Table or (ra_deg, dec_deg)")
+    """(ra, dec) in radians and the catalog table (or None): :class:`xstack._inputs.Positions`."""
+    pos = Positions.from_any(positions)
+    return pos.ra, pos.dec, pos.table
 
 
 class _Pointing:

@@ -27,19 +27,9 @@ _NSUM = 8  # sum w, w Re, w Im, w^2, w^2 Re, w^2 Re^2, w^2 Im, w^2 Im^2 ; + coun
 
 
 def _partitions(stacked: Any) -> list[xr.Dataset]:
-    from xstack.schema import iter_partitions, open_store
+    from xstack._inputs import partitions
 
-    if hasattr(stacked, "stacked") and isinstance(stacked.stacked, dict):
-        return list(stacked.stacked.values())
-    if isinstance(stacked, dict):
-        return list(stacked.values())
-    if isinstance(stacked, xr.Dataset):
-        return [stacked]
-    if isinstance(stacked, (str, os.PathLike)):
-        stacked = open_store(stacked)
-    if isinstance(stacked, xr.DataTree):
-        return [ds for _, ds in iter_partitions(stacked)]
-    raise XstackError(f"cannot make a uv profile of {type(stacked).__name__}")
+    return [ds for _, ds in partitions(stacked)]
 
 
 def _block_range(uvw, frequency):

@@ -28,7 +28,7 @@ from astropy.table import Table
 
 from xstack import _vocabulary
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
-from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
+from xstack._inputs import Positions, grouped_partitions
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack._select import parallel_hand_mask, sky_correlations, uv_limits, uv_range_mask
 from xstack.beams import DEFAULT_PB_CUTOFF, dish_diameter, inside_field, standard_beam
@@ -36,10 +36,9 @@ from xstack.coords import (
     angular_separation,
     mean_direction,
     radec_to_lmn,
-    read_catalog,
 )
 from xstack.errors import NoDataError, OptionError, XstackError, XstackWarning
-from xstack.schema import default_time_chunk, iter_partitions, open_store
+from xstack.schema import default_time_chunk
 from xstack.uvstack import kernels
 from xstack.uvstack import smearing as _smearing
 from xstack.uvstack.profile import plot_uv_profile, uv_profile  # noqa: F401  (public re-export)
@@ -136,53 +135,17 @@ class StackResult:
 
 # --- inputs -------------------------------------------------------------------------------
 
-def _is_ms(path: Path) -> bool:
-    return path.is_dir() and (path / "table.dat").exists()
-
-
 def _load_datasets(data: Any) -> list[tuple[str, list[tuple[str, xr.Dataset]]]]:
     """Normalise ``data`` to [(label, [(partition name, Dataset), ...]), ...].
 
-    A MeasurementSet is converted to a temporary store that lives exactly as long as some
-    lazy object can still read it (:func:`xstack._lifetime.tie_lifetime`).
+    See :func:`xstack._inputs.grouped_partitions` (MeasurementSets converted lazily).
     """
-    items = list(data) if isinstance(data, (list, tuple)) else [data]
-    if not items:
-        raise XstackError("no input data given")
-    out = []
-    for i, item in enumerate(items):
-        if isinstance(item, xr.DataTree):
-            label, tree = f"data{i}", item
-        elif isinstance(item, xr.Dataset):
-            out.append((f"data{i}", [("partition", item)]))
-            continue
-        elif isinstance(item, (str, os.PathLike)):
-            path = Path(item)
-            label = str(path)
-            if not path.exists():
-                raise XstackError(f"{path}: no such store or MeasurementSet")
-            if _is_ms(path):
-                from xstack.io.convert import convert_ms
-
-                owner = TemporaryStoreOwner(prefix="xstack-uvstack-")
-                store = convert_ms(path, Path(owner.path) / "converted.zarr")
-                tree = tie_lifetime(open_store(store), owner)
-            else:
-                tree = open_store(path)
-        else:
-            raise XstackError(f"cannot stack {type(item).__name__}: give a store path, an MS "
-                              "path or an xarray DataTree")
-        parts = list(iter_partitions(tree))
-        if not parts:
-            raise XstackError(f"{label}: no partitions")
-        out.append((label, parts))
-    return out
+    # in-memory partitions may lack baseline antenna ids (the numba engine does not need them)
+    return grouped_partitions(data, prefix="xstack-uvstack-", validate=False)
 
 
 def _positions_table(positions: Any) -> Table:
-    if isinstance(positions, (str, os.PathLike, Table)):
-        return read_catalog(positions)
-    raise XstackError("positions must be an astropy Table or a catalog path")
+    return Positions.from_any(positions).as_table()
 
 
 class FitsBeam:
@@ -654,12 +617,14 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     ----------
     data
         An :class:`xarray.DataTree` (e.g. from :func:`xstack.open_store`), a store path, a
-        MeasurementSet path (converted to a temporary store), or a list of these: several
+        MeasurementSet path (converted to a temporary store), a Dataset, a dict of Datasets
+        (any input of :func:`xstack._inputs.partitions`), or a list of these: several
         datasets are stacked together, every partition (pointing x window) about its own
         phase centre.
     positions
-        :class:`astropy.table.Table` or catalog path with ``ra``, ``dec`` in degrees
-        (optional ``weight`` for ``weighting="column"``, ``sigma`` in Jy for ``"sigma2"``).
+        :class:`astropy.table.Table` or catalog path with ``ra``, ``dec`` in degrees, or
+        coordinates (:meth:`xstack._inputs.Positions.from_any`); optional ``weight`` for
+        ``weighting="column"``, ``sigma`` in Jy for ``"sigma2"``.
     weighting
         Position weights W_k: ``none`` (1), ``pb`` (A_k^2 at the partition's mean frequency:
         the inverse variance of the primary-beam corrected flux), ``sigma2`` (1/sigma_k^2

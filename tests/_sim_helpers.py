@@ -6,6 +6,25 @@ import numpy as np
 
 C = 299_792_458.0
 
+#: A four-antenna VLA-D scene of three 2 mJy targets: seconds to simulate, for CLI tests.
+TINY_SCENE = """
+name = "tiny"
+[array]
+config = "vla.d"
+antennas = ["W08", "E08", "N08", "W02"]
+[observation]
+time_per_pointing = 30.0
+[spectral]
+channels = 3
+[effects]
+noise = { sigma = 0.01 }
+[[populations]]
+name = "targets"
+count = 3
+flux = { kind = "fixed", value = "2mJy" }
+positions = { kind = "box", size_arcsec = [60, 60] }
+"""
+
 
 def direct_eq1(uvw, freq, l, m, nm1, flux, attenuation=None, fwhm=None):
     """Equation 1 by brute force: one complex exponential per (row, channel, source)."""

@@ -13,6 +13,7 @@ import sys
 import numpy as np
 import pytest
 from _imstack_helpers import make_field
+from _sim_helpers import TINY_SCENE
 from _uvstack_helpers import VLA_CENTER, make_stack_partition
 from astropy.table import Table
 
@@ -22,23 +23,8 @@ from xstack.coords import lm_to_radec
 from xstack.schema import write_store
 from xstack.testing import make_test_ms
 
-SCENE = """
-name = "habits"
-[array]
-config = "vla.d"
-antennas = ["W08", "E08", "N08", "W02"]
-[observation]
-time_per_pointing = 30.0
-[spectral]
-channels = 3
-[effects]
-noise = { sigma = 0.01 }
-[[populations]]
-name = "targets"
-count = 3
-flux = { kind = "fixed", value = "2mJy" }
-positions = { kind = "box", size_arcsec = [60, 60] }
-"""
+SCENE = TINY_SCENE
+
 
 FLUX = 0.05  # Jy, the point source at the catalog position
 

@@ -11,6 +11,7 @@ import warnings
 import numpy as np
 import pytest
 from _fit_helpers import noise_field
+from test_noise_truth import _unproject  # the SIN inverse written out in plain numpy
 
 from xstack.beams import standard_beam
 from xstack.errors import XstackError
@@ -20,13 +21,6 @@ from xstack.noise.positions import hull_region, make_region, random_positions
 CENTRE = (1.0, -0.5236)
 ARCMIN = np.pi / 180 / 60
 NO = np.zeros(0)
-
-
-def _unproject(l, m, ra0, dec0):
-    n = np.sqrt(1 - l * l - m * m)
-    dec = np.arcsin(m * np.cos(dec0) + n * np.sin(dec0))
-    ra = ra0 + np.arctan2(l, n * np.cos(dec0) - m * np.sin(dec0))
-    return np.mod(ra, 2 * np.pi), dec
 
 
 def _project(ra, dec, ra0, dec0):

@@ -5,28 +5,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
+from _sim_helpers import TINY_SCENE
 from astropy.table import Table
 
 from xstack.cli import main
 from xstack.schema import open_store
 
-SCENE = """
-name = "cli"
-[array]
-config = "vla.d"
-antennas = ["W08", "E08", "N08", "W02"]
-[observation]
-time_per_pointing = 30.0
-[spectral]
-channels = 3
-[effects]
-noise = { sigma = 0.01 }
-[[populations]]
-name = "targets"
-count = 3
-flux = { kind = "fixed", value = "2mJy" }
-positions = { kind = "box", size_arcsec = [60, 60] }
-"""
+SCENE = TINY_SCENE
+
 
 
 def test_cli_scene_file_json(tmp_path, capsys):

@@ -150,12 +150,6 @@ class ImageResult:
 
 
 # --------------------------------------------------------------------------- selection
-def _as_partitions(data: Any) -> list[tuple[str, xr.Dataset]]:
-    from xstack._inputs import partitions
-
-    return partitions(data)
-
-
 def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, *,
                       allow_mosaic: bool = False) -> list[tuple[str, xr.Dataset]]:
     """Partitions of ``data`` whose names match ``partitions`` (names or glob patterns).
@@ -163,7 +157,9 @@ def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, 
     Unless ``allow_mosaic``, all selected partitions must share one phase centre (one
     pointing): CLEAN's major cycles work on a single pointing.
     """
-    parts = _as_partitions(data)
+    from xstack._inputs import partitions as as_partitions
+
+    parts = as_partitions(data)
     if partitions is not None:
         pats = [partitions] if isinstance(partitions, str) else list(partitions)
         chosen = [(n, d) for n, d in parts if any(fnmatch.fnmatchcase(n, p) for p in pats)]

@@ -446,8 +446,7 @@ def _weight_total(ds, pol_mask, lo, hi):
                         pol_mask=np.asarray(pol_mask, bool), lo=lo, hi=hi).sum()
 
 
-def _sigma2_pointing_weights(parts, ra, dec, sigma, beam_spec, cutoff, polarizations, lo, hi,
-                             progress=False):
+def _sigma2_pointing_weights(parts, geometries, sigma, polarizations, lo, hi, progress=False):
     """Per-(pointing, position) weights of ``sigma2`` on several pointings (paper §3.3.2).
 
     sigma_k is the noise of position k's primary-beam corrected flux in the whole data (a
@@ -458,18 +457,19 @@ def _sigma2_pointing_weights(parts, ra, dec, sigma, beam_spec, cutoff, polarizat
     estimate of position k the effective weight w_pk W_p = f_pk / sigma_k^2: a position near
     a pointing's edge enters that pointing with its small share, not with full weight.
 
+    ``geometries``: :func:`_geometry` of every partition, in ``parts`` order.
+
     Returns
     -------
     list of (npos,) arrays, one per partition in ``parts`` order.
     """
     from xstack._progress import dask_progress
 
-    geo = [_geometry(ds, ra, dec, beam_spec, cutoff) for _, ds in parts]
     totals = [_weight_total(ds, _pol_mask(ds, polarizations, name), lo, hi)
               for name, ds in parts]
     with dask_progress("uvstack: pointing weights", enabled=progress):
         wtot = np.array(dask.compute(*totals), dtype=np.float64)
-    a2 = np.array([np.where(g[5], g[4], 0.0) ** 2 for g in geo])      # (npart, npos)
+    a2 = np.array([np.where(g[5], g[4], 0.0) ** 2 for g in geometries])  # (npart, npos)
     info = (a2 * wtot[:, None]).sum(axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         w = np.where(info > 0, a2 / (sigma[None, :] ** 2 * info[None, :]), 0.0)
@@ -480,9 +480,10 @@ def _sigma2_pointing_weights(parts, ra, dec, sigma, beam_spec, cutoff, polarizat
 
 def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, cutoff,
                     polarizations, smearing=("none", None, None),
-                    position_weight=None) -> _Plan:
+                    position_weight=None, geometry=None) -> _Plan:
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-    l, m, n1, att, att_ref, used = _geometry(ds, ra, dec, beam_spec, cutoff)
+    l, m, n1, att, att_ref, used = (geometry if geometry is not None
+                                    else _geometry(ds, ra, dec, beam_spec, cutoff))
     if position_weight is not None:
         w = position_weight
     elif weighting == "none":
@@ -768,15 +769,16 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     multi = len(datasets) > 1
     parts = [(f"{name}_ds{i}" if multi else name, sky_correlations(ds, autocorrelations))
              for i, (_label, group) in enumerate(datasets) for name, ds in group]
+    # each pointing's view of the positions, computed once (sigma2 weights and plans use it)
+    geometries = [_geometry(ds, ra, dec, beam_spec, float(pb_cutoff)) for _, ds in parts]
     position_weights: list[Any] = [None] * len(parts)
     if weighting == "sigma2" and sig is not None and len(parts) > 1:
-        position_weights = _sigma2_pointing_weights(parts, ra, dec, sig, beam_spec,
-                                                    float(pb_cutoff), polarizations, lo, hi,
-                                                    progress)
+        position_weights = _sigma2_pointing_weights(parts, geometries, sig, polarizations, lo,
+                                                    hi, progress)
     plans: list[_Plan] = [
         _plan_partition(pname, ds, ra, dec, sig, col_weight, weighting, beam_spec,
-                        float(pb_cutoff), polarizations, (smearing, lo, hi), pw)
-        for (pname, ds), pw in zip(parts, position_weights)]
+                        float(pb_cutoff), polarizations, (smearing, lo, hi), pw, geo)
+        for (pname, ds), pw, geo in zip(parts, position_weights, geometries)]
     covered = np.zeros(npos, dtype=bool)
     for p in plans:
         covered |= p.used

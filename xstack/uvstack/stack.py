@@ -903,8 +903,11 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         warnings.warn(XstackWarning(
             f"uv-stack flux error from WEIGHT ({measured['flux_err_jy']:.3g} Jy) and from the "
             f"visibility scatter ({measured['flux_err_empirical_jy']:.3g} Jy) differ by "
-            f"{ratio:.3g}x: the weights are mis-scaled; choose the error printed first with "
-            "errors='weights' (flux_err_jy) or errors='empirical' (flux_err_empirical_jy)",
+            f"{ratio:.3g}x: the weights are mis-scaled"
+            + ("" if ratio < 1 else ", or sky signal changes across channels (bright sources "
+               "far from the phase centre: subtract them first)")
+            + "; choose the error printed first with errors='weights' (flux_err_jy) or "
+            "errors='empirical' (flux_err_empirical_jy)",
             option="errors"),
             stacklevel=2)
     return StackResult(stacked=stacked, flux_jy=measured["flux_jy"],

@@ -97,7 +97,7 @@ def big_partition(time_step: float):
     vis = np.empty(shape, dtype=np.complex64)
     vis.real = rng.standard_normal(shape, dtype=np.float32)
     vis.imag = rng.standard_normal(shape, dtype=np.float32)
-    vis += 1.0  # a 1 Jy source at the phase centre
+    vis += 1.0  # a 1 Jy source at the phase center
     ds = new_partition(visibility=vis, weight=np.ones(shape, np.float32),
                        flag=np.zeros(shape, bool), uvw=uvw, time=times, antenna1=a1,
                        antenna2=a2, antenna_names=arr.names, antenna_positions=arr.positions,
@@ -206,7 +206,7 @@ def main() -> None:
     bench_epsilon_time(rows, 180)
     print("\n".join(rows))
     rows = ["\n## Paper type 3 size: dirty image + PSF\n",
-            "| image | integration | Mvis (both hands) | epsilon | time (s) | centre (Jy/beam, true 1) "
+            "| image | integration | Mvis (both hands) | epsilon | time (s) | center (Jy/beam, true 1) "
             "| beam (\") | peak RSS (MB) |",
             "|---|---|---|---|---|---|---|---|"]
     psf = None

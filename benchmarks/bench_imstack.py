@@ -26,7 +26,7 @@ from astropy.wcs import WCS
 
 from xstack.imstack import kernels
 from xstack.imstack.io import read_image
-from xstack.imstack.stack import imstack
+from xstack.imstack.stack import stack_images
 
 BEAM = (3.2, 1.6, 0.0)
 
@@ -104,7 +104,7 @@ def main() -> None:
         rows = [(False, "mean", "sigma2"), ("fourier", "mean", "sigma2"), ("spline", "mean", "sigma2"),
                 (False, "median", "none"), ("fourier", "median", "none"), (False, "mean", "none")]
         for sub, method, wt in rows:
-            t, mem, res, cpu = timed(lambda s=sub, m=method, w=wt: imstack(
+            t, mem, res, cpu = timed(lambda s=sub, m=method, w=wt: stack_images(
                 info, pos, stamp_size=args.stamp, method=m, weighting=w, subpixel=s), args.repeat)
             # exact expectation for these positions: the beam at each one's sub-pixel offset
             fx, fy = res.cube.frac_x.values, res.cube.frac_y.values

@@ -120,14 +120,14 @@ def bench_accuracy(rs=(10, 30, 100, 300), n_sets: int = 6) -> list[dict]:
     from xstack.noise.estimate import estimate_noise
     from xstack.noise.positions import random_positions
 
-    centre = (1.0, -0.5236)
-    ra, dec = random_positions(60, 1, np.array([centre]), np.array([np.radians(10 / 60)]),
+    center = (1.0, -0.5236)
+    ra, dec = random_positions(60, 1, np.array([center]), np.array([np.radians(10 / 60)]),
                                avoid_ra=np.zeros(0), avoid_dec=np.zeros(0),
                                min_separation=np.radians(60 / 3600), rng=np.random.default_rng(0))
     ra, dec = ra[0], dec[0]
     _, uvw, freq = noise_field(0, n_ant=20, extent_m=20e3)
-    A = standard_beam("VLA", 25.0)(angular_separation(ra, dec, *centre)[:, None], freq[None])
-    l, m, _, n1 = radec_to_lmn(ra, dec, *centre)
+    A = standard_beam("VLA", 25.0)(angular_separation(ra, dec, *center)[:, None], freq[None])
+    l, m, _, n1 = radec_to_lmn(ra, dec, *center)
     P = np.zeros(uvw.shape[:2] + (freq.size,), complex)
     for k in range(ra.size):
         d = uvw[..., 0] * l[k] + uvw[..., 1] * m[k] + uvw[..., 2] * n1[k]

@@ -107,13 +107,13 @@ def main(argv=None) -> int:
     if "disc" in cases or "box" in cases:
         parts = load_geometry(vla_scene(), a.vla_scale)
         ds = next(iter(parts.values()))
-        centre = tuple(float(x) for x in ds.attrs["phase_center"])
+        center = tuple(float(x) for x in ds.attrs["phase_center"])
         print(f"# VLA: {dict(ds.sizes)}", flush=True)
         cats = {}
         if "disc" in cases:
-            cats["disc"] = disc_catalog(centre, 15.0, 300, seed=3)
+            cats["disc"] = disc_catalog(center, 15.0, 300, seed=3)
         if "box" in cases:
-            cats["box"] = box_catalog(centre, 30.0, 300, seed=3)
+            cats["box"] = box_catalog(center, 30.0, 300, seed=3)
         for name, (ra, dec) in cats.items():
             for wt in a.weightings.split(","):
                 rows += run_case(name, parts, ra, dec, wt, a.truth_realizations, a.realizations)
@@ -123,10 +123,10 @@ def main(argv=None) -> int:
         parts = load_geometry(scene, a.alma_scale)
         ds = next(iter(parts.values()))
         print(f"# ALMA paper-8 mosaic: {len(parts)} pointings x {dict(ds.sizes)}", flush=True)
-        from xstack.sim.scene import PAPER_FIELD_CENTRE
+        from xstack.sim.scene import PAPER_FIELD_CENTER
 
-        centre = tuple(np.radians(PAPER_FIELD_CENTRE))
-        ra, dec = box_catalog(centre, 100.0 / 60.0, 50, seed=3)
+        center = tuple(np.radians(PAPER_FIELD_CENTER))
+        ra, dec = box_catalog(center, 100.0 / 60.0, 50, seed=3)
         for wt in a.weightings.split(","):
             rows += run_case("mosaic", parts, ra, dec, wt, a.truth_realizations, a.realizations)
     print("\n| case | weighting | truth (µJy) | set spread | analytic | mc | random | bootstrap |")

@@ -31,7 +31,7 @@ from xstack.sim.simulate import simulate
 from xstack.uvstack import smearing as usm
 
 ARCMIN = math.pi / 180 / 60
-CENTRE = (57.2957916666667, -30.0)
+CENTER = (57.2957916666667, -30.0)
 
 
 def _scene(hours: float, width_hz: float) -> dict:
@@ -40,10 +40,10 @@ def _scene(hours: float, width_hz: float) -> dict:
         "array": {"config": "vla.a"},
         "observation": {"integration": 10.0, "time_per_pointing": hours * 3600.0,
                         "hour_angle": [-4.7, 4.7]},
-        "spectral": {"centre": 1.4e9, "bandwidth": 10 * width_hz, "channels": 10,
+        "spectral": {"center": 1.4e9, "bandwidth": 10 * width_hz, "channels": 10,
                      "polarizations": ["RR", "LL"]},
-        "pointings": {"mode": "single", "centre": list(CENTRE)},
-        "effects": {"primary_beam": "standard", "w_term": True, "bandwidth_smearing": True,
+        "pointings": {"mode": "single", "center": list(CENTER)},
+        "effects": {"primary_beam": "auto", "w_term": True, "bandwidth_smearing": True,
                     "time_smearing": True},
         "populations": [],  # geometry only: no model, zero visibilities (the loss reads none)
     }
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     out(f"load average at start: {os.getloadavg()[0]:.1f}")
     rng = np.random.default_rng(5)
     half = 15 * ARCMIN
-    ra0, dec0 = math.radians(CENTRE[0]), math.radians(CENTRE[1])
+    ra0, dec0 = math.radians(CENTER[0]), math.radians(CENTER[1])
     ra, dec = lm_to_radec(rng.uniform(-half, half, args.positions),
                           rng.uniform(-half, half, args.positions), ra0, dec0)
     from astropy.table import Table
@@ -112,10 +112,11 @@ def main(argv: list[str] | None = None) -> int:
                 out(f"| {rows} | {t:.2f} | {c:.2f} | {err.max():.2e} | "
                     f"{np.sqrt(np.mean(err**2)):.2e} |")
             out(f"| all {nrow} | {t_all:.2f} | {c_all:.2f} | 0 | 0 |")
-            from xstack.uvstack.stack import uvstack
 
-            t_st, c_st, _ = _timed(uvstack, store, cat, smearing="none", weighting="none")
-            t_co, c_co, _ = _timed(uvstack, store, cat, smearing="auto", weighting="none")
+            from xstack.uvstack.stack import stack_uv
+
+            t_st, c_st, _ = _timed(stack_uv, store, cat, smearing="none", weighting="none")
+            t_co, c_co, _ = _timed(stack_uv, store, cat, smearing="auto", weighting="none")
             out()
             out(f"uv-stack flux pass of the same store: {t_st:.2f} s wall ({c_st:.2f} s CPU) "
                 f"with smearing='none', {t_co:.2f} s ({c_co:.2f} s CPU) with 'auto' "

@@ -7,7 +7,7 @@ baselines), 3384 integrations of 10 s, 10 channels of 25 MHz at 1.4 GHz, 2 polar
 
 Sections (all in one run, same machine state):
 
-1. end-to-end ``xstack.uvstack.stack.uvstack`` (flux pass over the lazy dask graph);
+1. end-to-end ``xstack.uvstack.stack.stack_uv`` (flux pass over the lazy dask graph);
 2. the phasor kernel alone per engine and precision (numba float64 = production per row,
    the antenna-factorised kernel (``engine="antenna"``, the ``auto`` choice), numba with
    float32 phases, plain numpy reference measured on a slice and extrapolated, ducc0 type-3
@@ -120,7 +120,7 @@ def type6_data(n_time: int, n_pos: int, rng):
                        dish_diameters=arr.diameters, frequency=freq,
                        channel_width=np.full(10, 25e6), polarization=["RR", "LL"],
                        phase_center=CENTER, telescope_name="VLA",
-                       # noise at channel centres, like the paper's type 6: nothing to
+                       # noise at channel centers, like the paper's type 6: nothing to
                        # un-smear (the smearing correction has its own benchmark)
                        attrs={"smearing": {"bandwidth": False, "time": False}})
     tree = xr.DataTree.from_dict({"spw0_field0": ds})
@@ -142,9 +142,9 @@ def section_empirical(n_time: int, n_pos: int, rng, repeat: int = 3) -> None:
 
     ds, tree, cat, *_ = type6_data(n_time, n_pos, rng)
     small = xr.DataTree.from_dict({"spw0_field0": ds.isel(time=slice(0, 2))})
-    S.uvstack(small, cat)  # JIT warm-up (both paths)
+    S.stack_uv(small, cat)  # JIT warm-up (both paths)
     S._EMPIRICAL_SUMS = False
-    S.uvstack(small, cat)
+    S.stack_uv(small, cat)
     out("")
     out("| flux pass (engine auto) | run | wall [s] | CPU [s] | flux_err_jy | "
         "flux_err_empirical_jy |")
@@ -170,28 +170,28 @@ def section_empirical(n_time: int, n_pos: int, rng, repeat: int = 3) -> None:
 def section_end_to_end(n_time: int, n_pos: int, rng) -> dict:
     import xarray as xr
 
-    from xstack.uvstack.stack import uvstack
+    from xstack.uvstack.stack import stack_uv
 
     ds, tree, cat, uvw, a1, a2, freq, ra, dec, nvis = type6_data(n_time, n_pos, rng)
     small = xr.DataTree.from_dict({"spw0_field0": ds.isel(time=slice(0, 2))})
     for engine in ("numba", "antenna"):  # JIT warm-up
-        uvstack(small, cat, engine=engine)
+        stack_uv(small, cat, engine=engine)
     out("")
     out("| stage | engine asked (ran) | wall [s] | CPU [s] (all threads) | throughput [vis/s wall] "
         "| python peak alloc [MiB] |")
     out("|---|---|---|---|---|---|")
     flux = {}
     for engine in ("numba", "auto"):
-        dt, peak, res = traced_peak(uvstack, tree, cat, weighting="pb", engine=engine)
+        dt, peak, res = traced_peak(stack_uv, tree, cat, weighting="pb", engine=engine)
         flux[engine] = res.flux_jy
-        out(f"| uvstack() end to end (flux pass, float64) | {engine} ({res.options['engine']}) | "
+        out(f"| stack_uv() end to end (flux pass, float64) | {engine} ({res.options['engine']}) | "
             f"{dt:.2f} | {CPU['last']:.2f} | {nvis / dt:.3e} | {peak / 2**20:.0f} |")
         with tempfile.TemporaryDirectory() as tmp:
             # the CLI always writes the stacked store: written in the flux's own pass
-            dtw, peakw, resw = traced_peak(uvstack, tree, cat, weighting="pb", engine=engine,
+            dtw, peakw, resw = traced_peak(stack_uv, tree, cat, weighting="pb", engine=engine,
                                            out=Path(tmp) / "s.zarr")
             assert abs(resw.flux_jy - res.flux_jy) <= 1e-12 * abs(res.flux_jy)
-        out(f"| uvstack(out=...) end to end (stacked store written + flux, one pass) | {engine} "
+        out(f"| stack_uv(out=...) end to end (stacked store written + flux, one pass) | {engine} "
             f"({resw.options['engine']}) | {dtw:.2f} | {CPU['last']:.2f} | {nvis / dtw:.3e} | "
             f"{peakw / 2**20:.0f} |")
     out(f"flux numba {flux['numba']:.15e}, auto {flux['auto']:.15e} Jy (relative difference "

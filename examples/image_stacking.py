@@ -34,7 +34,7 @@ def main(outdir: Path) -> dict[str, float]:
     results = {}
     for method, subpixel in (("mean", False), ("mean", "fourier"), ("median", False)):
         label = f"{method}-{subpixel or 'nearest'}"
-        res = xstack.imstack(image, targets, method=method, subpixel=subpixel, pbcor=True,
+        res = xstack.stack_images(image, targets, method=method, subpixel=subpixel, pbcor=True,
                              out=outdir / f"stack-{label}.fits", overwrite=True)
         results[label] = res.flux_jy
         print(f"{label:15s} {res.flux_jy * 1e6:7.2f} +- {res.flux_err_jy * 1e6:.2f} uJy/beam")

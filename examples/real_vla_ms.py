@@ -38,7 +38,7 @@ def main(outdir: Path) -> dict:
     path = write_image(outdir / "evla_dirty.fits", image.image, image.header, overwrite=True)
     peak = tuple(int(i) for i in np.unravel_index(np.nanargmax(np.abs(image.image)), image.image.shape))
     print(f"dirty image {path.name}: beam {image.beam[0]:.1f} x {image.beam[1]:.1f} arcsec, "
-          f"reference pixel at the phase centre {image.wcs.wcs.crval}, peak |I| at pixel {peak}")
+          f"reference pixel at the phase center {image.wcs.wcs.crval}, peak |I| at pixel {peak}")
 
     summary = {"beam_arcsec": image.beam[:2], "crval": tuple(image.wcs.wcs.crval)}
     back = xstack.export_ms(store, outdir / "evla_roundtrip.ms", overwrite=True)

@@ -27,7 +27,7 @@ def main(outdir: Path) -> dict[str, float]:
     print(f"simulated {sim.n_visibilities:,} visibilities, {len(targets)} targets")
 
     # pb weighting: W_k = A_k^2, the inverse variance of each primary-beam corrected flux
-    res = xstack.uvstack(sim.store, targets, weighting="pb", out=outdir / "stacked.zarr",
+    res = xstack.stack_uv(sim.store, targets, weighting="pb", out=outdir / "stacked.zarr",
                          overwrite=True)
     injected = float(np.mean(targets["flux"]))
     print(f"injected mean flux {injected * 1e6:.2f} uJy")

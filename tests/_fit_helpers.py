@@ -57,7 +57,7 @@ def partition_from(vis: np.ndarray, weight: np.ndarray, uvw: np.ndarray, a1, a2,
 def gaussian_stack(flux: float, fwhm_arcsec: float, sigma: float, seed: int, *,
                    n_ant: int = 12, n_time: int = 20, freq=(1.3e9, 1.4e9, 1.5e9, 1.6e9),
                    extent_m: float = 20e3, coverage_seed: int = 0):
-    """A 'stacked' partition: a circular Gaussian at the phase centre plus Gaussian noise of
+    """A 'stacked' partition: a circular Gaussian at the phase center plus Gaussian noise of
     rms ``sigma`` per real/imaginary part (weights 1/sigma^2)."""
     uvw, a1, a2 = uv_coverage(n_ant, n_time, extent_m, seed=coverage_seed)
     freq = np.asarray(freq, float)
@@ -78,9 +78,9 @@ def lmn(ra, dec, ra0, dec0):
     return l, m, n - 1
 
 
-def point_sources_vis(uvw, freq, ra, dec, flux, centre, atten=None, fwhm_arcsec=None):
+def point_sources_vis(uvw, freq, ra, dec, flux, center, atten=None, fwhm_arcsec=None):
     """Equation 1 summed over sources: (t, bl, chan) complex, plain numpy."""
-    l, m, n1 = lmn(np.asarray(ra), np.asarray(dec), *centre)
+    l, m, n1 = lmn(np.asarray(ra), np.asarray(dec), *center)
     out = np.zeros(uvw.shape[:2] + (len(freq),), complex)
     flux = np.broadcast_to(flux, l.shape)
     for k in range(l.size):
@@ -94,11 +94,11 @@ def point_sources_vis(uvw, freq, ra, dec, flux, centre, atten=None, fwhm_arcsec=
     return out
 
 
-def stack_flux(vis, weight, uvw, freq, ra, dec, centre, inv_att=None):
+def stack_flux(vis, weight, uvw, freq, ra, dec, center, inv_att=None):
     """Reference uv-stack (eq. 4 + weighted mean of Re V over both hands), plain numpy.
 
     vis, weight: (t, bl, chan, pol); inv_att: (K, chan) or None."""
-    l, m, n1 = lmn(np.asarray(ra), np.asarray(dec), *centre)
+    l, m, n1 = lmn(np.asarray(ra), np.asarray(dec), *center)
     P = np.zeros(uvw.shape[:2] + (len(freq),), complex)
     for k in range(l.size):
         d = uvw[..., 0] * l[k] + uvw[..., 1] * m[k] + uvw[..., 2] * n1[k]
@@ -124,7 +124,7 @@ def noise_field(seed, *, n_ant=10, n_time=12, freq=(1.35e9, 1.4e9, 1.45e9), sigm
 class StampSimulator:
     """Dirty-image stamps by direct Fourier sums (natural weighting), independent of xstack.
 
-    ``stamp(flux, fwhm, seed)`` = dirty image of a circular Gaussian at the centre plus the
+    ``stamp(flux, fwhm, seed)`` = dirty image of a circular Gaussian at the center plus the
     dirty image of white visibility noise; ``psf`` = the dirty beam on a grid twice as big.
     """
 
@@ -155,7 +155,7 @@ class StampSimulator:
 
 
 def write_stamp_fits(sim: StampSimulator, img: np.ndarray, path) -> None:
-    """Write a stacked stamp of ``sim`` (0.5" pixels, SIN, centred) with its PSF as an HDU."""
+    """Write a stacked stamp of ``sim`` (0.5" pixels, SIN, centered) with its PSF as an HDU."""
     from astropy.io import fits
 
     hdr = fits.Header({"CTYPE1": "RA---SIN", "CTYPE2": "DEC--SIN", "CDELT1": -0.5 / 3600,

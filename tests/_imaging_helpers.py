@@ -8,7 +8,7 @@ from xstack.coords import radec_to_lmn
 from xstack.imaging.kernels import point_source_visibilities
 from xstack.schema import baseline_pairs, new_partition
 
-PHASE_CENTER = (np.radians(57.29579), np.radians(-30.0))  # near the paper's field centre
+PHASE_CENTER = (np.radians(57.29579), np.radians(-30.0))  # near the paper's field center
 
 
 def synthetic_uvw(n_ant: int = 12, n_time: int = 24, dec0: float = PHASE_CENTER[1],
@@ -69,7 +69,7 @@ def make_sky_partition(sources=(), *, n_ant: int = 12, n_time: int = 24, n_chan:
         channel_width=np.full(n_chan, chan_width), polarization=list(pols),
         phase_center=phase_center, telescope_name=telescope, integration_time=10.0,
         field_id=field_id,
-        # visibilities at channel centres and integration mid-points: not smeared
+        # visibilities at channel centers and integration mid-points: not smeared
         attrs={"smearing": {"bandwidth": False, "time": False}})
 
 

@@ -9,14 +9,14 @@ import numpy as np
 from astropy.io import fits
 from astropy.wcs import WCS
 
-#: Field centre of the paper's data sets: RA 3h49m10.99s, Dec -30 deg.
+#: Field center of the paper's data sets: RA 3h49m10.99s, Dec -30 deg.
 RA0, DEC0 = 57.2957917, -30.0
 LN2 = np.log(2.0)
 
 
 def sin_wcs(n: int, cell_arcsec: float, ra0: float = RA0, dec0: float = DEC0,
             crpix: tuple[float, float] | None = None) -> WCS:
-    """A standard SIN celestial WCS (CDELT1 < 0), reference pixel at the image centre."""
+    """A standard SIN celestial WCS (CDELT1 < 0), reference pixel at the image center."""
     w = WCS(naxis=2)
     w.wcs.ctype = ["RA---SIN", "DEC--SIN"]
     w.wcs.cunit = ["deg", "deg"]
@@ -100,8 +100,8 @@ def write_image(path: Path, data: np.ndarray, w: WCS, beam: tuple[float, float, 
 
 def expected_nearest(frac_x: np.ndarray, frac_y: np.ndarray, cell: float,
                      beam: tuple[float, float, float]) -> float:
-    """Exact expectation of a nearest-pixel stack's centre for given sub-pixel offsets."""
-    # a source at +f pixels from the stamp centre is seen at the centre at offset -f
+    """Exact expectation of a nearest-pixel stack's center for given sub-pixel offsets."""
+    # a source at +f pixels from the stamp center is seen at the center at offset -f
     return float(np.mean(gauss_beam(frac_x * cell, -frac_y * cell, *beam)))
 
 

@@ -81,7 +81,7 @@ def make_stack_partition(*, n_ant=8, n_time=20, n_chan=4, freq0=1.4e9, dfreq=25e
         channel_width=np.full(n_chan, dfreq), polarization=list(pols),
         phase_center=phase_center, telescope_name=telescope, integration_time=10.0,
         field_id=field_id, field_name=f"field{field_id}",
-        # visibilities at channel centres and integration mid-points: not smeared
+        # visibilities at channel centers and integration mid-points: not smeared
         attrs={"smearing": {"bandwidth": False, "time": False}})
 
 

@@ -45,7 +45,7 @@ def _casacore_mean(ms, cross_only: bool) -> float:
     return float(np.sum(w * data[rows][:, :, par].real) / np.sum(w))
 
 
-def _phase_centre_catalog(store):
+def _phase_center_catalog(store):
     ds = next(iter_partitions(open_store(store)))[1]
     ra, dec = np.degrees(ds.attrs["phase_center"])
     return Table({"ra": [ra], "dec": [dec]})
@@ -58,15 +58,15 @@ def test_real_ms_has_autocorrelations(lwa):
     assert list(parallel_hand_mask(ds["polarization"].values)) == [True, True, False, False]
 
 
-def test_uvstack_at_the_phase_centre_uses_cross_correlations_only(lwa):
+def test_uvstack_at_the_phase_center_uses_cross_correlations_only(lwa):
     ms, store = lwa
-    cat = _phase_centre_catalog(store)
-    res = xstack.uvstack(store, cat, weighting="none", primary_beam="none")
+    cat = _phase_center_catalog(store)
+    res = xstack.stack_uv(store, cat, weighting="none", primary_beam="none")
     truth = _casacore_mean(ms, cross_only=True)
     with_auto = _casacore_mean(ms, cross_only=False)
     assert abs(with_auto / truth) > 10          # autocorrelations would dominate
     assert res.flux_jy == pytest.approx(truth, rel=1e-5)
-    res_all = xstack.uvstack(store, cat, weighting="none", primary_beam="none",
+    res_all = xstack.stack_uv(store, cat, weighting="none", primary_beam="none",
                              autocorrelations=True)
     assert res_all.flux_jy == pytest.approx(with_auto, rel=1e-5)
     assert res.options["autocorrelations"] is False
@@ -98,7 +98,7 @@ def test_image_equals_image_of_cross_correlations(lwa):
 
 def test_subtract_leaves_autocorrelations_alone(lwa, tmp_path):
     _, store = lwa
-    cat = _phase_centre_catalog(store)
+    cat = _phase_center_catalog(store)
     cat["flux"] = [1000.0]
     out = xstack.subtract(store, cat, tmp_path / "res.zarr", primary_beam="none")
     (_, before), = list(iter_partitions(open_store(store)))
@@ -106,7 +106,7 @@ def test_subtract_leaves_autocorrelations_alone(lwa, tmp_path):
     auto = autocorrelation_mask(before)
     vb, va = before["VISIBILITY"].values, after["VISIBILITY"].values
     np.testing.assert_array_equal(va[:, auto], vb[:, auto])
-    # a 1000 Jy point source at the phase centre is 1000 + 0j on every cross-correlation
+    # a 1000 Jy point source at the phase center is 1000 + 0j on every cross-correlation
     # (complex64 data of amplitude up to ~1e8: compare to its rounding)
     diff = (vb.astype(np.complex128) - va)[:, ~auto][..., :2]
     tol = 2 * np.finfo(np.float32).eps * np.abs(vb[:, ~auto]).max()
@@ -120,8 +120,8 @@ def test_cli_leaves_autocorrelations_out_unless_asked(lwa, tmp_path, capsys):
     from xstack.cli import main
 
     ms, store = lwa
-    cat = _phase_centre_catalog(store)
-    cat_path = tmp_path / "centre.ecsv"
+    cat = _phase_center_catalog(store)
+    cat_path = tmp_path / "center.ecsv"
     cat.write(cat_path)
     args = ["uvstack", str(store), str(cat_path), None, "--weighting", "none",
             "--primary-beam", "none", "--json", "--no-progress"]

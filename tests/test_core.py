@@ -239,8 +239,8 @@ def test_lmn_against_astropy_offset_frame():
     ra = ra0 + rng.uniform(-0.05, 0.05, 50)
     dec = dec0 + rng.uniform(-0.05, 0.05, 50)
     l, m, n, nm1 = radec_to_lmn(ra, dec, ra0, dec0)
-    centre = SkyCoord(ra0 * u.rad, dec0 * u.rad)
-    off = SkyCoord(ra * u.rad, dec * u.rad).transform_to(centre.skyoffset_frame())
+    center = SkyCoord(ra0 * u.rad, dec0 * u.rad)
+    off = SkyCoord(ra * u.rad, dec * u.rad).transform_to(center.skyoffset_frame())
     # astropy's offset frame: lon/lat on the sphere; direction cosines follow from them
     lat, lon = off.lat.rad, off.lon.rad
     np.testing.assert_allclose(l, np.cos(lat) * np.sin(lon), atol=1e-14)
@@ -249,7 +249,7 @@ def test_lmn_against_astropy_offset_frame():
     np.testing.assert_allclose(nm1, n - 1, atol=1e-15)
 
 
-def test_n_minus_one_keeps_precision_near_centre():
+def test_n_minus_one_keeps_precision_near_center():
     l, m, n, nm1 = radec_to_lmn(1e-9, 1e-9, 0.0, 0.0)
     assert nm1 != 0.0
     np.testing.assert_allclose(nm1, -(l**2 + m**2) / 2, rtol=1e-12)

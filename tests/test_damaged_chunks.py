@@ -32,7 +32,7 @@ def _corrupt(store: Path, var: str = "VISIBILITY") -> Path:
 @pytest.fixture(scope="module")
 def stores(tmp_path_factory):
     """Good and damaged data and stacked stores, and a catalog with a flux column."""
-    from xstack.uvstack.stack import uvstack
+    from xstack.uvstack.stack import stack_uv
 
     d = tmp_path_factory.mktemp("damaged")
     ra, dec = lm_to_radec(2e-3, -1e-3, *VLA_CENTER)
@@ -43,7 +43,7 @@ def stores(tmp_path_factory):
     cat.write_text(f"ra,dec,flux\n{float(np.degrees(ra))!r},{float(np.degrees(dec))!r},0.05\n")
     stacked = d / "stacked.zarr"
     with pytest.warns(UserWarning):  # random visibilities: the weights are "mis-scaled"
-        uvstack(data, str(cat), primary_beam="none", out=stacked)
+        stack_uv(data, str(cat), primary_beam="none", out=stacked)
     bad = d / "bad.zarr"
     shutil.copytree(data, bad)
     _corrupt(bad)

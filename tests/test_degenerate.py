@@ -23,7 +23,7 @@ PC = (math.radians(150.0), math.radians(2.0))
 
 
 def _partition(uvw: np.ndarray, a1, a2, n_chan: int = 4) -> object:
-    """A partition of a 1 Jy point source at the phase centre on the given (time, bl, 3) uvw."""
+    """A partition of a 1 Jy point source at the phase center on the given (time, bl, 3) uvw."""
     nt, nb = uvw.shape[:2]
     n_ant = int(max(max(a1), max(a2))) + 1
     shape = (nt, nb, n_chan, 2)

@@ -56,13 +56,13 @@ def store(tmp_path_factory):
 
 
 @pytest.mark.parametrize("call", [
-    lambda s: xstack.uvstack(s, _catalog(), weighting="optimal"),
-    lambda s: xstack.uvstack(s, _catalog(), engine="gpu"),
-    lambda s: xstack.uvstack(s, _catalog(), pb_cutoff=1.5),
-    lambda s: xstack.uvstack(s, _catalog(), smearing="maybe"),
+    lambda s: xstack.stack_uv(s, _catalog(), weighting="optimal"),
+    lambda s: xstack.stack_uv(s, _catalog(), engine="gpu"),
+    lambda s: xstack.stack_uv(s, _catalog(), pb_cutoff=1.5),
+    lambda s: xstack.stack_uv(s, _catalog(), smearing="maybe"),
     lambda s: xstack.estimate_noise(s, _catalog(), method="jackknife"),
     lambda s: xstack.estimate_noise(s, _catalog(), weighting="optimal"),
-    lambda s: xstack.imstack("x.fits", _catalog(), method="mode"),
+    lambda s: xstack.stack_images("x.fits", _catalog(), method="mode"),
     lambda s: xstack.make_image(s, size=64, cell_arcsec=1.0, weighting="robust"),
     lambda s: xstack.PrimaryBeam("square"),
 ])
@@ -75,7 +75,7 @@ def test_bad_options_are_value_errors(call, store):
 def test_no_data_is_a_no_data_error(store):
     far = _catalog(offset_deg=30.0)  # 30 deg from the pointing: outside every beam
     with pytest.raises(NoDataError) as exc:
-        xstack.uvstack(store, far)
+        xstack.stack_uv(store, far)
     assert isinstance(exc.value, XstackError)
 
 
@@ -162,7 +162,7 @@ def _x100_store(tmp_path):
 def test_cli_warning_is_one_line_naming_the_flag(tmp_path, capsys):
     store, cat = _x100_store(tmp_path)
     with pytest.warns(XstackWarning, match="errors='empirical'") as rec:
-        xstack.uvstack(store, str(cat), weighting="none", primary_beam="none")
+        xstack.stack_uv(store, str(cat), weighting="none", primary_beam="none")
     assert [w.message.option for w in rec if isinstance(w.message, XstackWarning)] == ["errors"]
     assert main(["uvstack", str(store), str(cat), str(tmp_path / "o.zarr"), "--weighting",
                  "none", "--primary-beam", "none", "-q"]) == 0

@@ -45,7 +45,7 @@ def test_real_vla_example(tmp_path):
         pytest.skip("pyuvdata (test extra) not installed")
     from casacore.tables import table
 
-    # the image's reference pixel is the phase centre the MS's FIELD table gives
+    # the image's reference pixel is the phase center the MS's FIELD table gives
     with table(str(tmp_path / "day2_TDEM0003_10s_norx_1src_1spw.ms" / "FIELD"), ack=False) as field:
         ra, dec = np.degrees(field.getcol("PHASE_DIR")[0, 0])
     assert np.allclose(out["crval"], [ra % 360.0, dec], atol=1e-9)

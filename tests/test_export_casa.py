@@ -310,8 +310,8 @@ def _xstack_simulated(tmp: Path, cell_arcsec: float, dx: int, dy: int, flux: flo
         "array": {"config": "vla.d"},
         "observation": {"date": "2014-01-01", "hour_angle": [-1.0, 1.0], "integration": 60.0,
                         "time_per_pointing": 1200.0},
-        "spectral": {"centre": 1.4e9, "bandwidth": 16e6, "channels": 4, "polarizations": ["RR", "LL"]},
-        "pointings": {"mode": "single", "centre": [150.0, 30.0]},
+        "spectral": {"center": 1.4e9, "bandwidth": 16e6, "channels": 4, "polarizations": ["RR", "LL"]},
+        "pointings": {"mode": "single", "center": [150.0, 30.0]},
         "effects": {"primary_beam": "none", "w_term": True},
         "populations": [{"name": "src", "count": 1, "flux": {"kind": "fixed", "value": f"{flux}Jy"},
                          "positions": {"kind": "list", "ra": [float(np.rad2deg(ra))],
@@ -382,7 +382,7 @@ def test_casa_reads_and_images_export_of_casa_simulation(casa, tmp_path):
     out = _roundtrip(src, tmp_path)
     assert casa_problems(out) == []
     images = _check_with_casa(casa, out, src, {"imsize": [256, 256], "cell": "0.3arcsec"}, _nrows(src))
-    # the 2 Jy source is on the image (off a pixel centre, so a little fainter)
+    # the 2 Jy source is on the image (off a pixel center, so a little fainter)
     assert 1.6 < np.max(images[0]) < 2.002
 
 

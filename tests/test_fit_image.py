@@ -85,8 +85,8 @@ def test_fits_input_and_bad_input(tmp_path, sim):
     fits.HDUList([fits.PrimaryHDU(0.9 * sim0.stamp(1.0, 0.0, 0), header=hdr),
                   fits.ImageHDU(smear, header=ph, name="PSF")]).writeto(spath)
     s = fit_image(spath, model="point", sigma_jy=1e-3)
-    assert s.flux_jy == pytest.approx(1.0, rel=1e-6) and not s.extra["psf_normalised"]
-    s2 = fit_image(spath, model="point", sigma_jy=1e-3, normalise_psf=True)
+    assert s.flux_jy == pytest.approx(1.0, rel=1e-6) and not s.extra["psf_normalized"]
+    s2 = fit_image(spath, model="point", sigma_jy=1e-3, normalize_psf=True)
     assert s2.flux_jy == pytest.approx(0.9, rel=1e-6)
     nopsf = tmp_path / "nopsf.fits"
     fits.PrimaryHDU(img, header=hdr).writeto(nopsf)

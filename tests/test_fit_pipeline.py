@@ -10,7 +10,7 @@ import pytest
 def test_type7_scaled_uvstack_then_fit():
     sim = pytest.importorskip("xstack.sim.simulate")
     presets = pytest.importorskip("xstack.sim.presets")
-    uvstack = pytest.importorskip("xstack.uvstack.stack").uvstack
+    stack_uv = pytest.importorskip("xstack.uvstack.stack").stack_uv
     import xarray as xr
 
     from xstack.fit.uvfit import fit_uv
@@ -20,7 +20,7 @@ def test_type7_scaled_uvstack_then_fit():
     scene["effects"]["noise"]["sigma"] = 2e-4  # 50x below Table 1: a high-S/N stack
     parts, cats = sim.simulate_partitions(scene, seed=3, scale=0.05)
     targets = cats["targets"]
-    res = uvstack(xr.DataTree.from_dict(parts), targets, weighting="pb")
+    res = stack_uv(xr.DataTree.from_dict(parts), targets, weighting="pb")
     fit = fit_uv(res, model="gaussian")
     truth_flux = float(np.mean(targets["flux"]))
     truth_fwhm = float(np.mean(targets["fwhm_arcsec"]))

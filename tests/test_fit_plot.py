@@ -80,7 +80,7 @@ def test_uv_fit_figure_curve_is_the_fitted_model(gauss_ds, model):
     # it spans the profile's uv range
     assert q.min() / 1e3 == pytest.approx(table["bin_lo_klambda"][0])
     assert q.max() / 1e3 == pytest.approx(table["bin_hi_klambda"][-1])
-    # the error-bar points are uv_profile's table: centres, means and 1-sigma errors
+    # the error-bar points are uv_profile's table: centers, means and 1-sigma errors
     for gid, col in (("re", "re"), ("im", "im")):
         cont = _errorbar(ax, gid)
         x, y = cont.lines[0].get_data()
@@ -143,7 +143,7 @@ def test_image_fit_figure_panels(stamp_fits):
     assert ims["stamp"].get_clim() == ims["model"].get_clim()
     lo, hi = ims["residual"].get_clim()
     assert lo == -hi
-    # arcsec axes centred on the stacking position, east to the left
+    # arcsec axes centered on the stacking position, east to the left
     left, right, bottom, top = ims["stamp"].get_extent()
     assert left == pytest.approx(16.5 * 0.5) and right == pytest.approx(-16.5 * 0.5)
     assert bottom == pytest.approx(-16.5 * 0.5) and top == pytest.approx(16.5 * 0.5)

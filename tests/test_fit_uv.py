@@ -112,16 +112,16 @@ def test_ill_conditioned_fits_give_clear_errors():
 
 def test_type7_like_uv_stacks_recover_flux_and_size():
     """Paper type 7 scaled down: 20 identical Gaussian targets (FWHM 1.5", 1 mJy), each at a
-    random position up to 5' from the phase centre of its own field (no confusion between
+    random position up to 5' from the phase center of its own field (no confusion between
     targets, see docs/fit.md), uv-stacked with plain numpy (eq. 4: shift each to the phase
-    centre, average) and fitted. Over 120 realisations (new noise and new positions) the truth
+    center, average) and fitted. Over 120 realisations (new noise and new positions) the truth
     lies within 2 reported sigma in >= 90 % (expect 95 %) and the reported errors match the
     scatter within 15 %."""
     from _fit_helpers import C, lmn, partition_from, uv_coverage
 
     flux, fwhm, n_targets = 1e-3, 1.5, 20
     sigma = 1.5e-3 * np.sqrt(n_targets)  # per visibility; the stack averages it down
-    centre = (1.0, -0.5236)
+    center = (1.0, -0.5236)
     uvw, a1, a2 = uv_coverage(12, 10, 20e3, seed=0)
     freq = np.array([1.3e9, 1.4e9, 1.5e9, 1.6e9])
     q2 = (uvw[..., 0] ** 2 + uvw[..., 1] ** 2)[..., None] * (freq / C) ** 2
@@ -130,16 +130,16 @@ def test_type7_like_uv_stacks_recover_flux_and_size():
     rng = np.random.default_rng(2024)
     out = []
     for _ in range(120):
-        ra = centre[0] + rng.uniform(-300, 300, n_targets) * ARCSEC / np.cos(centre[1])
-        dec = centre[1] + rng.uniform(-300, 300, n_targets) * ARCSEC
-        l, m, n1 = lmn(ra, dec, *centre)
+        ra = center[0] + rng.uniform(-300, 300, n_targets) * ARCSEC / np.cos(center[1])
+        dec = center[1] + rng.uniform(-300, 300, n_targets) * ARCSEC
+        l, m, n1 = lmn(ra, dec, *center)
         d = (uvw[..., 0, None] * l + uvw[..., 1, None] * m + uvw[..., 2, None] * n1)
         e = np.moveaxis(np.exp(2j * np.pi * d[..., None, :] * (freq / C)[:, None]), -1, 0)
         vis = (envelope * e)[..., None] + sigma * (rng.normal(size=shape)
                                                    + 1j * rng.normal(size=shape))
         stacked = np.mean(vis * np.conj(e)[..., None], axis=0)
         ds = partition_from(stacked, np.full(shape[1:], 1 / sigma**2), uvw, a1, a2, freq,
-                            phase_center=centre)
+                            phase_center=center)
         r = fit_uv(ds, model="gaussian")
         out.append((r.flux_jy, r.flux_err_jy, r.fwhm_arcsec, r.fwhm_err_arcsec))
     f, fe, t, te = np.array(out).T

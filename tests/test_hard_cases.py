@@ -27,16 +27,16 @@ ARCSEC = math.pi / 180.0 / 3600.0
 
 # ----------------------------------------------------------------------------- helpers
 
-def _scene(centre_deg, populations, *, config="vla.d", antennas=range(6), freq=1.4e9,
+def _scene(center_deg, populations, *, config="vla.d", antennas=range(6), freq=1.4e9,
            channels=3, bandwidth=None, w_term=True, n_int=3, hour_angle=(-1.0, 1.0), **kw):
     base = {
         "name": "hard",
         "array": {"config": config, "antennas": list(antennas)},
         "observation": {"hour_angle": list(hour_angle), "integration": 60.0,
                         "time_per_pointing": 60.0 * n_int},
-        "spectral": {"centre": freq, "bandwidth": bandwidth or freq * 0.02,
+        "spectral": {"center": freq, "bandwidth": bandwidth or freq * 0.02,
                      "channels": channels, "polarizations": ["RR", "LL"]},
-        "pointings": {"mode": "single", "centre": list(centre_deg)},
+        "pointings": {"mode": "single", "center": list(center_deg)},
         "effects": {"w_term": w_term},
         "visibility_dtype": "complex128",
         "populations": populations,
@@ -50,15 +50,15 @@ def _listed(name, ra, dec, flux):
             "positions": {"kind": "list", "ra": list(ra), "dec": list(dec)}}
 
 
-def _offsets(ra_deg, dec_deg, centre_deg):
-    """Direction cosines (l, m, n) of positions about a centre, from astropy's offset frame.
+def _offsets(ra_deg, dec_deg, center_deg):
+    """Direction cosines (l, m, n) of positions about a center, from astropy's offset frame.
 
-    In SkyOffsetFrame the centre is (lon, lat) = (0, 0), lon grows to the east and lat to
+    In SkyOffsetFrame the center is (lon, lat) = (0, 0), lon grows to the east and lat to
     the north, so the unit vector (cos lat cos lon, cos lat sin lon, sin lat) is (n, l, m).
     """
-    centre = SkyCoord(*centre_deg, unit="deg", frame="icrs")
+    center = SkyCoord(*center_deg, unit="deg", frame="icrs")
     off = SkyCoord(ra_deg, dec_deg, unit="deg", frame="icrs").transform_to(
-        centre.skyoffset_frame())
+        center.skyoffset_frame())
     lon, lat = off.lon.to_value(u.rad), off.lat.to_value(u.rad)
     return (np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon))
 
@@ -86,10 +86,10 @@ def test_simulator_near_the_poles(dec0):
     # the pole must be above the horizon: the VLA for the north, ALMA for the south (at
     # 1.4 GHz too, so that its primary beam holds the same 0.1 deg offsets)
     config = "vla.d" if dec0 > 0 else "alma.cycle1.6"
-    centre = (123.0, dec0)
+    center = (123.0, dec0)
     radius, box = 500.0, [300.0, 300.0]  # arcsec; the disc contains the pole (360" away)
-    # the source: 0.105 deg from the centre, across the pole (RA + 180 deg); 0.1 deg from a
-    # centre on the pole
+    # the source: 0.105 deg from the center, across the pole (RA + 180 deg); 0.1 deg from a
+    # center on the pole
     src = (303.0, math.copysign(89.995, dec0) if abs(dec0) < 90 else 89.9)
     pops = [
         _listed("src", [src[0]], [src[1]], 2e-3),
@@ -98,17 +98,17 @@ def test_simulator_near_the_poles(dec0):
         {"name": "box", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
          "positions": {"kind": "box", "size_arcsec": box}},
     ]
-    parts, cats = simulate_partitions(_scene(centre, pops, config=config), seed=3)
+    parts, cats = simulate_partitions(_scene(center, pops, config=config), seed=3)
     ds = _only(parts)
 
-    l, m, _ = _offsets(cats["disc"]["ra"], cats["disc"]["dec"], centre)
+    l, m, _ = _offsets(cats["disc"]["ra"], cats["disc"]["dec"], center)
     assert np.all(np.hypot(l, m) <= radius * ARCSEC * (1 + 1e-9))
-    sep = SkyCoord(*centre, unit="deg").separation(
+    sep = SkyCoord(*center, unit="deg").separation(
         SkyCoord(cats["disc"]["ra"], cats["disc"]["dec"], unit="deg")).arcsec
     assert np.all(sep <= radius * (1 + 1e-6))
     # the disc really straddles the pole: its positions span every RA
     assert np.ptp(np.asarray(cats["disc"]["ra"])) > 300
-    l, m, _ = _offsets(cats["box"]["ra"], cats["box"]["dec"], centre)
+    l, m, _ = _offsets(cats["box"]["ra"], cats["box"]["dec"], center)
     assert np.all(np.abs(l) <= box[0] / 2 * ARCSEC * (1 + 1e-9))
     assert np.all(np.abs(m) <= box[1] / 2 * ARCSEC * (1 + 1e-9))
     # uniform in the box: both halves about equally full (not bunched by the RA/Dec grid)
@@ -117,44 +117,44 @@ def test_simulator_near_the_poles(dec0):
     # the catalog keeps the source where it was asked for
     assert SkyCoord(*src, unit="deg").separation(SkyCoord(
         cats["src"]["ra"][0], cats["src"]["dec"][0], unit="deg")).arcsec < 1e-9
-    l, m, n = _offsets(src[0], src[1], centre)
+    l, m, n = _offsets(src[0], src[1], center)
     expect = _direct_eq1(ds.UVW.values, ds.frequency.values, l, m, n, 2e-3)
     vis = ds.VISIBILITY.values
     np.testing.assert_allclose(vis[..., 0], expect, rtol=0, atol=2e-3 * 1e-9)
     np.testing.assert_allclose(vis[..., 1], expect, rtol=0, atol=2e-3 * 1e-9)
-    # not trivially constant: the source is far enough off centre to wind the phase
+    # not trivially constant: the source is far enough off center to wind the phase
     assert np.ptp(np.angle(expect)) > 1.0
 
 
-@pytest.mark.parametrize("centre_ra", [359.99, 0.01])
-def test_simulator_across_ra_zero(centre_ra):
-    centre = (centre_ra, -30.0)
+@pytest.mark.parametrize("center_ra", [359.99, 0.01])
+def test_simulator_across_ra_zero(center_ra):
+    center = (center_ra, -30.0)
     pops = [
-        _listed("src", [0.02 if centre_ra > 180 else 359.98], [-30.01], 1e-3),
+        _listed("src", [0.02 if center_ra > 180 else 359.98], [-30.01], 1e-3),
         {"name": "box", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
          "positions": {"kind": "box", "size_arcsec": [300.0, 120.0]}},
         {"name": "disc", "count": 400, "flux": {"kind": "fixed", "value": 0.0},
          "positions": {"kind": "disc", "radius_arcsec": 200.0}},
     ]
-    parts, cats = simulate_partitions(_scene(centre, pops), seed=5)
+    parts, cats = simulate_partitions(_scene(center, pops), seed=5)
     ds = _only(parts)
     for name, half in (("box", (150.0, 60.0)), ("disc", None)):
         ra = np.asarray(cats[name]["ra"])
         assert np.all((ra >= 0) & (ra < 360))
         # both sides of RA 0 are populated
         assert np.any(ra < 1) and np.any(ra > 359)
-        l, m, _ = _offsets(ra, cats[name]["dec"], centre)
+        l, m, _ = _offsets(ra, cats[name]["dec"], center)
         if half:
             assert np.all(np.abs(l) <= half[0] * ARCSEC * (1 + 1e-9))
             assert np.all(np.abs(m) <= half[1] * ARCSEC * (1 + 1e-9))
         else:
             assert np.all(np.hypot(l, m) <= 200 * ARCSEC * (1 + 1e-9))
-    # the box is centred on the pointing, not shifted by 360 deg or mirrored
-    l, m, _ = _offsets(cats["box"]["ra"], cats["box"]["dec"], centre)
+    # the box is centered on the pointing, not shifted by 360 deg or mirrored
+    l, m, _ = _offsets(cats["box"]["ra"], cats["box"]["dec"], center)
     assert abs(np.mean(l)) < 10 * ARCSEC and abs(np.mean(m)) < 5 * ARCSEC
 
     src = (float(cats["src"]["ra"][0]), float(cats["src"]["dec"][0]))
-    l, m, n = _offsets(*src, centre)
+    l, m, n = _offsets(*src, center)
     expect = _direct_eq1(ds.UVW.values, ds.frequency.values, l, m, n, 1e-3)
     np.testing.assert_allclose(ds.VISIBILITY.values[..., 0], expect, rtol=0, atol=1e-12)
     assert np.ptp(np.angle(expect)) > 1.0
@@ -162,12 +162,12 @@ def test_simulator_across_ra_zero(centre_ra):
 
 # ------------------------------------------------------- 6. simulator: huge phase arguments
 
-def _long_baseline_scene(src, centre, channels):
+def _long_baseline_scene(src, center, channels):
     site = packaged_array("alma.cycle1.6").site
     # a 16 km east-west baseline and a 12 km north-south one, ALMA-like (at its site)
     enu = np.array([[0.0, 0.0, 0.0], [16_000.0, 0.0, 3.0], [-700.0, 12_000.0, -5.0]])
     pos = enu_to_itrf(enu, site).tolist()
-    scene = _scene(centre, [_listed("src", [src[0]], [src[1]], 1.0)], channels=channels,
+    scene = _scene(center, [_listed("src", [src[0]], [src[1]], 1.0)], channels=channels,
                    freq=900e9, bandwidth=7.5e9, n_int=4)
     scene["array"] = {"positions": pos, "diameters": [12.0] * 3, "telescope": "ALMA",
                       "names": ["A", "B", "C"]}
@@ -178,11 +178,11 @@ def _long_baseline_scene(src, centre, channels):
 
 @pytest.mark.parametrize("channels", [3, 70])  # 70: past two resyncs of the channel recurrence
 def test_simulator_huge_phases_match_long_double(channels):
-    centre = (201.0, -23.0)
+    center = (201.0, -23.0)
     src = (201.0 + 1.0 / 60 / math.cos(math.radians(23.0)) * 0.6, -23.0 + 0.8 / 60)  # 1' off
-    parts, cats = simulate_partitions(_long_baseline_scene(src, centre, channels))
+    parts, cats = simulate_partitions(_long_baseline_scene(src, center, channels))
     ds = _only(parts)
-    assert SkyCoord(*centre, unit="deg").separation(
+    assert SkyCoord(*center, unit="deg").separation(
         SkyCoord(*src, unit="deg")).arcmin == pytest.approx(1.0, rel=1e-3)
 
     ld = np.longdouble
@@ -191,7 +191,7 @@ def test_simulator_huge_phases_match_long_double(channels):
     pi = np.arccos(ld(-1))
     to_rad = pi / ld(180)
     ra, dec = ld(float(cats["src"]["ra"][0])) * to_rad, ld(float(cats["src"]["dec"][0])) * to_rad
-    ra0, dec0 = ld(centre[0]) * to_rad, ld(centre[1]) * to_rad
+    ra0, dec0 = ld(center[0]) * to_rad, ld(center[1]) * to_rad
     l = np.cos(dec) * np.sin(ra - ra0)
     m = np.sin(dec) * np.cos(dec0) - np.cos(dec) * np.sin(dec0) * np.cos(ra - ra0)
     n = np.sqrt(1 - l * l - m * m)
@@ -209,14 +209,14 @@ def test_simulator_huge_phases_match_long_double(channels):
 
 # ------------------------------------------------------- 2. imaging at the pole / across RA 0
 
-def _sin_wcs(centre_deg, n, cell_arcsec):
+def _sin_wcs(center_deg, n, cell_arcsec):
     """The FITS SIN grid xstack images on, built by astropy from its definition."""
     w = WCS(naxis=2)
     w.wcs.ctype = ["RA---SIN", "DEC--SIN"]
-    w.wcs.crval = list(centre_deg)
+    w.wcs.crval = list(center_deg)
     w.wcs.crpix = [n // 2 + 1, n // 2 + 1]
     w.wcs.cdelt = [-cell_arcsec / 3600, cell_arcsec / 3600]
-    # l, m of docs/conventions.md at any centre, the pole included (FITS's default LONPOLE
+    # l, m of docs/conventions.md at any center, the pole included (FITS's default LONPOLE
     # would turn the grid by 180 deg at dec0 = +90 exactly)
     w.wcs.lonpole = 180.0
     return w
@@ -233,23 +233,23 @@ def _peak(image):
             ix, iy)
 
 
-@pytest.mark.parametrize("centre, pixel, src", [
-    # 0.1 deg from the pole; the source 450" north: across the pole, on a pixel centre
+@pytest.mark.parametrize("center, pixel, src", [
+    # 0.1 deg from the pole; the source 450" north: across the pole, on a pixel center
     ((123.0, 89.9), (7, 45), None),
-    # centred exactly on the pole
+    # centered exactly on the pole
     ((45.0, 90.0), (-12, 30), None),
     # the image straddles RA 0; the source at RA 359.99, on no particular pixel
     ((0.001, 10.0), None, (359.99, 10.02)),
 ])
-def test_imaging_peak_at_the_true_position(centre, pixel, src):
+def test_imaging_peak_at_the_true_position(center, pixel, src):
     from xstack.imaging.image import make_image
 
     n, cell = 128, 10.0
-    truth = _sin_wcs(centre, n, cell)
-    if pixel is not None:  # pixel offsets (x west, y north) from the centre pixel
+    truth = _sin_wcs(center, n, cell)
+    if pixel is not None:  # pixel offsets (x west, y north) from the center pixel
         ra, dec = truth.pixel_to_world_values(n // 2 - pixel[0], n // 2 + pixel[1])
         src = (float(ra), float(dec))
-    scene = _scene(centre, [_listed("src", [src[0]], [src[1]], 1e-3)], antennas=range(0, 27, 2),
+    scene = _scene(center, [_listed("src", [src[0]], [src[1]], 1e-3)], antennas=range(0, 27, 2),
                    observation={
                        "hour_angle": [-3.0, 3.0], "integration": 1200.0,
                        "time_per_pointing": 9600.0})
@@ -275,7 +275,7 @@ IMSTACK_BEAM = (3.2, 1.6, 30.0)  # arcsec, arcsec, deg
 def test_imstack_across_ra_zero_and_near_the_pole(tmp_path, ra0, dec0):
     from _imstack_helpers import make_field
 
-    from xstack.imstack import imstack
+    from xstack.imstack import stack_images
 
     rng = np.random.default_rng(21)
     path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=IMSTACK_BEAM, n_side=6,
@@ -285,7 +285,7 @@ def test_imstack_across_ra_zero_and_near_the_pole(tmp_path, ra0, dec0):
         ra = np.where(ra > 180, ra - 360.0, ra)  # and given as negative RAs too
     if dec0 > 89.99:  # the image holds the pole: the positions surround it
         assert np.ptp(ra) > 300
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
     assert res.n_positions == 36
     assert res.flux_jy == pytest.approx(1.0, rel=0.01)
     # every stamp sits on its own source (a wrong RA branch would land off the image or on
@@ -298,10 +298,10 @@ def test_imstack_across_ra_zero_and_near_the_pole(tmp_path, ra0, dec0):
 
 
 def test_imstack_blanked_stamps(tmp_path):
-    """An all-NaN stamp is left out; a stack whose centre nothing covers is an error."""
+    """An all-NaN stamp is left out; a stack whose center nothing covers is an error."""
     from _imstack_helpers import make_field
 
-    from xstack.imstack import imstack
+    from xstack.imstack import stack_images
 
     rng = np.random.default_rng(22)
     path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=IMSTACK_BEAM, n_side=4,
@@ -314,9 +314,9 @@ def test_imstack_blanked_stamps(tmp_path):
     fits.PrimaryHDU(data, header=hdr).writeto(blank)
     pos = np.c_[ra, dec]
     with pytest.raises(XstackError, match="1 of 16 positions"):
-        imstack(blank, pos, stamp_size=32)
+        stack_images(blank, pos, stamp_size=32)
     for weighting in ("sigma2", "none"):
-        res = imstack(blank, pos, stamp_size=32, weighting=weighting, subpixel="fourier",
+        res = stack_images(blank, pos, stamp_size=32, weighting=weighting, subpixel="fourier",
                       skip_outside=True)
         assert res.skipped_rows == [1] and res.n_positions == 15
         assert np.isfinite(res.flux_jy) and np.isfinite(res.flux_err_jy)
@@ -326,17 +326,17 @@ def test_imstack_blanked_stamps(tmp_path):
     allnan = tmp_path / "allnan.fits"
     fits.PrimaryHDU(np.full_like(data, np.nan), header=hdr).writeto(allnan)
     with pytest.raises(XstackError, match="no position"):
-        imstack(allnan, pos, stamp_size=32, skip_outside=True)
+        stack_images(allnan, pos, stamp_size=32, skip_outside=True)
     with pytest.raises(XstackError, match="outside every image"):
-        imstack(allnan, pos, stamp_size=32)
+        stack_images(allnan, pos, stamp_size=32)
 
 
 @pytest.mark.parametrize("subpixel", ["fourier", "spline"])
-def test_imstack_centre_lost_to_blanking_is_an_error(tmp_path, subpixel):
-    """The nearest pixel is finite but a blanked neighbour makes the shifted centre NaN."""
+def test_imstack_center_lost_to_blanking_is_an_error(tmp_path, subpixel):
+    """The nearest pixel is finite but a blanked neighbour makes the shifted center NaN."""
     from _imstack_helpers import make_field
 
-    from xstack.imstack import imstack
+    from xstack.imstack import stack_images
 
     rng = np.random.default_rng(23)
     path, ra, dec, px, py = make_field(tmp_path, rng, 0.5, beam=IMSTACK_BEAM, n_side=2,
@@ -348,9 +348,9 @@ def test_imstack_centre_lost_to_blanking_is_an_error(tmp_path, subpixel):
     holes = tmp_path / "holes.fits"
     fits.PrimaryHDU(data, header=hdr).writeto(holes)
     with pytest.raises(XstackError, match="stacking position"):
-        imstack(holes, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel=subpixel)
-    # nearest-pixel alignment keeps every centre and stacks fine
-    res = imstack(holes, np.c_[ra, dec], stamp_size=32, weighting="none")
+        stack_images(holes, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel=subpixel)
+    # nearest-pixel alignment keeps every center and stacks fine
+    res = stack_images(holes, np.c_[ra, dec], stamp_size=32, weighting="none")
     assert np.isfinite(res.flux_jy)
 
 
@@ -360,21 +360,21 @@ def _sep_deg(ra1, dec1, ra2, dec2):
     return SkyCoord(ra1, dec1, unit="deg").separation(SkyCoord(ra2, dec2, unit="deg")).deg
 
 
-@pytest.mark.parametrize("centre", [(40.0, 89.9), (0.0, -89.9), (359.999, 5.0)])
-def test_random_positions_uniform_in_solid_angle(centre):
+@pytest.mark.parametrize("center", [(40.0, 89.9), (0.0, -89.9), (359.999, 5.0)])
+def test_random_positions_uniform_in_solid_angle(center):
     """1e5 placements in a disc (containing the pole for |dec| = 89.9): the radial
     distribution follows sin r dr, the position angle is uniform, none is outside."""
     from xstack.noise.positions import random_positions
 
     radius = np.radians(0.3)
-    c = np.radians([centre])
+    c = np.radians([center])
     ra, dec = random_positions(1000, 100, c, np.array([radius]), avoid_ra=np.zeros(0),
                                avoid_dec=np.zeros(0), min_separation=0.0,
                                rng=np.random.default_rng(1))
     ra, dec = np.degrees(ra).ravel(), np.degrees(dec).ravel()
     assert ra.size == 100_000 and np.all((ra >= 0) & (ra < 360))
     sky = SkyCoord(ra, dec, unit="deg")
-    cen = SkyCoord(*centre, unit="deg")
+    cen = SkyCoord(*center, unit="deg")
     r = cen.separation(sky).rad
     assert r.max() <= radius * (1 + 1e-9)
     # P(< r) = (1 - cos r) / (1 - cos R): uniform per unit solid angle
@@ -383,8 +383,8 @@ def test_random_positions_uniform_in_solid_angle(centre):
     pa = cen.position_angle(sky).rad
     assert stats.kstest(pa / (2 * np.pi), "uniform").pvalue > 1e-3
     # the pole itself is inside the disc: the density there is not special
-    if abs(centre[1]) > 89:
-        near = _sep_deg(ra, dec, 0.0, math.copysign(90.0, centre[1])) < 0.05
+    if abs(center[1]) > 89:
+        near = _sep_deg(ra, dec, 0.0, math.copysign(90.0, center[1])) < 0.05
         expect = 100_000 * (1 - np.cos(np.radians(0.05))) / (1 - np.cos(radius))
         assert abs(near.sum() - expect) < 5 * np.sqrt(expect)
 
@@ -393,9 +393,9 @@ def test_random_positions_uniform_on_a_union_across_ra_zero():
     """Two overlapping discs either side of RA 0: the lens they share is not counted twice."""
     from xstack.noise.positions import random_positions
 
-    R, d = 0.1, 0.1  # deg: radius and centre distance
-    centres = np.radians([[360.0 - d / 2, 0.0], [d / 2, 0.0]])
-    ra, dec = random_positions(2000, 50, centres, np.radians([R, R]), avoid_ra=np.zeros(0),
+    R, d = 0.1, 0.1  # deg: radius and center distance
+    centers = np.radians([[360.0 - d / 2, 0.0], [d / 2, 0.0]])
+    ra, dec = random_positions(2000, 50, centers, np.radians([R, R]), avoid_ra=np.zeros(0),
                                avoid_dec=np.zeros(0), min_separation=0.0,
                                rng=np.random.default_rng(2))
     ra, dec = np.degrees(ra).ravel(), np.degrees(dec).ravel()
@@ -410,38 +410,38 @@ def test_random_positions_uniform_on_a_union_across_ra_zero():
     assert abs(got - n * frac) < 5 * np.sqrt(n * frac * (1 - frac))
 
 
-def _noise_data(centre, targets, *, sigma=1e-3):
-    scene = _scene(centre, [_listed("t", *targets, 0.0)], antennas=range(0, 27, 3),
+def _noise_data(center, targets, *, sigma=1e-3):
+    scene = _scene(center, [_listed("t", *targets, 0.0)], antennas=range(0, 27, 3),
                    freq=1.4e9, bandwidth=0.5e9, effects={"noise": {"sigma": sigma}})
     return simulate_partitions(scene, seed=11)[0]
 
 
-@pytest.mark.parametrize("centre", [(10.0, 89.9), (0.001, -20.0)])
+@pytest.mark.parametrize("center", [(10.0, 89.9), (0.001, -20.0)])
 @pytest.mark.parametrize("method", ["random", "mc"])
-def test_noise_random_positions_inside_the_field_and_apart(centre, method):
+def test_noise_random_positions_inside_the_field_and_apart(center, method):
     from xstack.beams import standard_beam
     from xstack.noise.estimate import estimate_noise
 
     rng = np.random.default_rng(4)
-    # targets within 0.2 deg of the centre: across the pole, and on both sides of RA 0
+    # targets within 0.2 deg of the center: across the pole, and on both sides of RA 0
     ra_t, dec_t = [], []
-    cen = SkyCoord(*centre, unit="deg")
+    cen = SkyCoord(*center, unit="deg")
     for pa, sep in zip(rng.uniform(0, 360, 12), 0.2 * np.sqrt(rng.uniform(0.05, 1, 12))):
         p = cen.directional_offset_by(pa * u.deg, sep * u.deg)
         ra_t.append(p.ra.deg)
         dec_t.append(p.dec.deg)
     ra_t, dec_t = np.array(ra_t), np.array(dec_t)
-    data = _noise_data(centre, (ra_t, dec_t))
+    data = _noise_data(center, (ra_t, dec_t))
     min_sep = 60.0
     res = estimate_noise(data, (ra_t, dec_t), method=method, realizations=30, flux=1e-3,
                          min_separation_arcsec=min_sep, seed=3)
     assert np.isfinite(res.noise_jy) and res.noise_jy > 0
     pos = res.positions_deg  # (R, n, 2)
     assert pos.shape == (30, 12, 2)
-    r = _sep_deg(pos[..., 0], pos[..., 1], *centre)
+    r = _sep_deg(pos[..., 0], pos[..., 1], *center)
     # default region: the targets' footprint (hull grown by its margin), inside the beam
     margin = float(res.extra["region"].split("grown by ")[1].split(" arcsec")[0]) / 3600
-    assert r.max() <= _sep_deg(ra_t, dec_t, *centre).max() + 1.01 * margin
+    assert r.max() <= _sep_deg(ra_t, dec_t, *center).max() + 1.01 * margin
     beam = standard_beam("VLA", 25.0)
     freq = next(iter(data.values())).frequency.values
     assert np.all(beam(np.radians(r)[..., None], freq) >= beam.cutoff)
@@ -451,14 +451,14 @@ def test_noise_random_positions_inside_the_field_and_apart(centre, method):
         assert d2d.arcsec.min() >= min_sep * (1 - 1e-9)
         _, d2d, _ = sky.match_to_catalog_sky(SkyCoord(ra_t, dec_t, unit="deg"))
         assert d2d.arcsec.min() >= min_sep * (1 - 1e-9)
-    if abs(centre[1]) < 80:  # random positions fall on both sides of RA 0
+    if abs(center[1]) < 80:  # random positions fall on both sides of RA 0
         assert np.any(pos[..., 0] < 1) and np.any(pos[..., 0] > 359)
 
 
-def _edge_targets(centre, beam, fmax):
+def _edge_targets(center, beam, fmax):
     """Targets out to (just inside) the cutoff radius of the highest channel."""
     r_cut = np.degrees(beam.radius_at(beam.cutoff, fmax))
-    cen = SkyCoord(*centre, unit="deg")
+    cen = SkyCoord(*center, unit="deg")
     ts = [cen.directional_offset_by(pa * u.deg, r_cut * 0.999 * u.deg) for pa in (0, 120, 240)]
     ts += [cen.directional_offset_by(pa * u.deg, 0.5 * r_cut * u.deg) for pa in (60, 180)]
     return np.array([t.ra.deg for t in ts]), np.array([t.dec.deg for t in ts]), r_cut
@@ -471,26 +471,26 @@ def test_noise_random_positions_stay_inside_the_cutoff_at_every_channel(default_
     from xstack.beams import standard_beam
     from xstack.noise.estimate import estimate_noise
 
-    centre = (10.0, 89.9)
+    center = (10.0, 89.9)
     beam = standard_beam("VLA", 25.0)
-    data = _noise_data(centre, ([10.0], [89.9]))
+    data = _noise_data(center, ([10.0], [89.9]))
     freq = next(iter(data.values())).frequency.values
-    ra_t, dec_t, r_cut = _edge_targets(centre, beam, freq.max())
-    assert np.all(beam(np.radians(_sep_deg(ra_t, dec_t, *centre))[:, None], freq) >= 0.1)
+    ra_t, dec_t, r_cut = _edge_targets(center, beam, freq.max())
+    assert np.all(beam(np.radians(_sep_deg(ra_t, dec_t, *center))[:, None], freq) >= 0.1)
     res = estimate_noise(data, (ra_t, dec_t), method="random", realizations=200,
                          min_separation_arcsec=1.0, seed=5,
                          field_radius_arcsec=None if default_field else 3600 * r_cut)
-    r = np.radians(_sep_deg(res.positions_deg[..., 0], res.positions_deg[..., 1], *centre))
+    r = np.radians(_sep_deg(res.positions_deg[..., 0], res.positions_deg[..., 1], *center))
     assert np.all(beam(r[..., None], freq) >= beam.cutoff)
 
 
 # ------------------------------------------ 5. fully flagged, zero-weight and NaN inputs
 
-def _small_partition(centre=(150.0, 30.0), offset_deg=0.01, spw=0):
-    src = (centre[0], centre[1] + offset_deg)
-    scene = _scene(centre, [_listed("s", [src[0]], [src[1]], 1e-3)], antennas=range(0, 27, 3),
+def _small_partition(center=(150.0, 30.0), offset_deg=0.01, spw=0):
+    src = (center[0], center[1] + offset_deg)
+    scene = _scene(center, [_listed("s", [src[0]], [src[1]], 1e-3)], antennas=range(0, 27, 3),
                    n_int=4, effects={"w_term": True, "noise": {"sigma": 1e-3}},
-                   spectral={"centre": 1.4e9 + 0.1e9 * spw, "bandwidth": 0.05e9,
+                   spectral={"center": 1.4e9 + 0.1e9 * spw, "bandwidth": 0.05e9,
                              "channels": 2, "polarizations": ["RR", "RL", "LR", "LL"]})
     return _only(simulate_partitions(scene, seed=7 + spw)[0])
 
@@ -545,7 +545,7 @@ def test_imaging_unusable_partition(how):
 def test_fit_unusable_stacked_data(how):
     from xstack.fit import fit_uv
 
-    ds = _small_partition(offset_deg=0.0)  # a stacked data set: the source at the centre
+    ds = _small_partition(offset_deg=0.0)  # a stacked data set: the source at the center
     for model in ("point", "gaussian"):
         with pytest.raises(XstackError, match="no usable visibilities"):
             fit_uv(_spoil(ds, how), model=model)
@@ -591,21 +591,21 @@ def test_imaging_mosaic_across_ra_zero_and_the_pole(pointings, src):
 
     scene = _scene(pointings[0], [_listed("src", [src[0]], [src[1]], 1e-3)],
                    antennas=range(0, 27, 2), pointings={"mode": "list", "positions": pointings},
-                   effects={"w_term": True, "primary_beam": "standard"},
+                   effects={"w_term": True, "primary_beam": "auto"},
                    observation={"hour_angle": [-3.0, 3.0], "integration": 1200.0,
                                 "time_per_pointing": 9600.0})
     parts, _ = simulate_partitions(scene)
     assert len(parts) == 2
     n, cell = 128, 10.0
     res = make_image(parts, size=n, cell_arcsec=cell)
-    # the mosaic centre is the mean direction, on the right side of RA 0 / of the pole
-    centre = np.degrees(mean_direction(np.radians(pointings)))
-    cen = SkyCoord(*centre, unit="deg")
+    # the mosaic center is the mean direction, on the right side of RA 0 / of the pole
+    center = np.degrees(mean_direction(np.radians(pointings)))
+    cen = SkyCoord(*center, unit="deg")
     for p in pointings:
         assert cen.separation(SkyCoord(*p, unit="deg")).deg == pytest.approx(
             0.5 * SkyCoord(*pointings[0], unit="deg").separation(
                 SkyCoord(*pointings[1], unit="deg")).deg, rel=1e-9)
-    truth = _sin_wcs(centre, n, cell)
+    truth = _sin_wcs(center, n, cell)
     img = np.nan_to_num(res.image, nan=-np.inf)
     x, y, _, _ = _peak(img)
     want_x, want_y = truth.world_to_pixel_values(*src)

@@ -121,7 +121,7 @@ def test_bad_models_write_nothing(bright_scene, tmp_path):
     res = make_image(ds, size=64, cell_arcsec=2.0)
     model = np.zeros((64, 64))
     model[10, 10] = 1.0
-    # a model whose grid centre is not the data's phase centre
+    # a model whose grid center is not the data's phase center
     h = res.header_for("model")
     h["CRVAL1"] += 0.01
     from xstack.imaging.fitsio import write_image
@@ -133,9 +133,9 @@ def test_bad_models_write_nothing(bright_scene, tmp_path):
     assert not out.exists()
     h = res.header_for("model")
     h["CRPIX1"] = 20.0
-    write_image(tmp_path / "offcentre.fits", model, h)
+    write_image(tmp_path / "offcenter.fits", model, h)
     with pytest.raises(XstackError, match="reference pixel"):
-        subtract(d / "data.zarr", tmp_path / "offcentre.fits", out)
+        subtract(d / "data.zarr", tmp_path / "offcenter.fits", out)
     res.write(tmp_path / "image.fits", model)  # Jy/beam image, not a model
     with pytest.raises(XstackError, match="Jy/pixel"):
         subtract(d / "data.zarr", tmp_path / "image.fits", out)
@@ -153,13 +153,13 @@ def test_catalog_subtraction_per_mosaic_pointing(tmp_path):
     src = offset_position(8.0, 4.0)
     parts = {}
     for field, (dx, dy) in enumerate([(0.0, 0.0), (20.0, 0.0)]):
-        centre = offset_position(dx, dy)
+        center = offset_position(dx, dy)
         freq = 230e9 + 50e6 * np.arange(3)
         beam = standard_beam("ALMA", 12.0)
-        att = beam(angular_separation(*centre, *src), freq)[None, :]
+        att = beam(angular_separation(*center, *src), freq)[None, :]
         ds = make_sky_partition([(src[0], src[1], 0.03)], n_time=4, n_ant=8, freq0=230e9,
                                 chan_width=50e6, n_chan=3, telescope="ALMA", dish=12.0,
-                                max_baseline=300.0, phase_center=centre, field_id=field,
+                                max_baseline=300.0, phase_center=center, field_id=field,
                                 attenuation=att)
         parts[f"spw0_field{field}"] = ds
     assert parts["spw0_field0"].attrs["phase_center"] != parts["spw0_field1"].attrs["phase_center"]

@@ -111,10 +111,10 @@ def test_image_cli_mosaic(tmp_path, capsys):
     src = offset_position(3.0, 2.0)
     parts = {}
     for field, dx in enumerate((-8.0, 8.0)):
-        centre = offset_position(dx, 0.0)
+        center = offset_position(dx, 0.0)
         for spw, f0 in enumerate((1.3e9, 1.5e9)):
             parts[f"spw{spw}_field{field}"] = make_sky_partition(
-                [(src[0], src[1], 0.5)], n_time=4, n_ant=8, freq0=f0, phase_center=centre,
+                [(src[0], src[1], 0.5)], n_time=4, n_ant=8, freq0=f0, phase_center=center,
                 field_id=field, seed=spw + 2 * field).assign_attrs(spectral_window_id=spw)
     write_store(parts, tmp_path / "m.zarr")
     groups = group_pointings(select_partitions(tmp_path / "m.zarr", allow_mosaic=True))
@@ -132,5 +132,5 @@ def test_image_cli_mosaic(tmp_path, capsys):
     bad = tmp_path / "clean.fits"
     assert main(["image", str(tmp_path / "m.zarr"), str(bad), "--size", "64", "--cell", "2",
                  "--niter", "10", "--no-progress"]) == 1
-    assert "different phase centres" in capsys.readouterr().err
+    assert "different phase centers" in capsys.readouterr().err
     assert not list(tmp_path.glob("clean*"))

@@ -21,7 +21,7 @@ ARCSEC = math.pi / 180 / 3600
 
 @pytest.fixture(scope="module")
 def point_partition():
-    # 1.5 Jy source 24" east and 12" south of the phase centre; cells of 2" put it on a pixel
+    # 1.5 Jy source 24" east and 12" south of the phase center; cells of 2" put it on a pixel
     src = offset_position(24.0, -12.0)
     return make_sky_partition([(src[0], src[1], 1.5)], n_time=16, n_ant=10), src
 
@@ -33,7 +33,7 @@ def test_dirty_image_peak_position_and_flux(point_partition):
     y, x = np.unravel_index(np.argmax(img), img.shape)
     # east is to the left: x decreases by 12 pixels; south: y decreases by 6
     assert (y - 64, x - 64) == pytest.approx((-6, -12), abs=0)
-    # the source sits within 0.03 pixel of the pixel centre (SIN vs offsets): ~no pixel loss
+    # the source sits within 0.03 pixel of the pixel center (SIN vs offsets): ~no pixel loss
     assert img[y, x] == pytest.approx(1.5, rel=1e-3)
     assert res.psf[64, 64] == pytest.approx(1.0, abs=1e-6)
     assert res.psf.max() == pytest.approx(1.0, abs=1e-6)
@@ -41,7 +41,7 @@ def test_dirty_image_peak_position_and_flux(point_partition):
     ra, dec = res.wcs.pixel_to_world_values(x, y)
     sep = SkyCoord(ra * u.deg, dec * u.deg).separation(SkyCoord(src[0] * u.rad, src[1] * u.rad))
     assert sep.arcsec < 0.2
-    # and the phase centre is at the reference pixel
+    # and the phase center is at the reference pixel
     ra0, dec0 = res.wcs.pixel_to_world_values(64, 64)
     assert ra0 == pytest.approx(math.degrees(PHASE_CENTER[0]), abs=1e-9)
     assert dec0 == pytest.approx(math.degrees(PHASE_CENTER[1]), abs=1e-9)
@@ -111,8 +111,8 @@ def test_pbcor_divides_by_beam():
     a = make_image(ds, size=256, cell_arcsec=5.0)
     b = make_image(ds, size=256, cell_arcsec=5.0, pbcor=True)
     y, x = np.unravel_index(np.argmax(a.image), a.image.shape)
-    assert b.pb is not None and 0.3 < b.pb[y, x] < 0.99
-    assert b.image[y, x] == pytest.approx(a.image[y, x] / b.pb[y, x], rel=1e-9)
+    assert b.primary_beam is not None and 0.3 < b.primary_beam[y, x] < 0.99
+    assert b.image[y, x] == pytest.approx(a.image[y, x] / b.primary_beam[y, x], rel=1e-9)
     assert b.header["XSPBCOR"] is True
 
 
@@ -160,9 +160,9 @@ def test_mosaic_selection_and_bad_input_errors(tmp_path):
     path = tmp_path / "m.zarr"
     write_store({"spw0_field0": a, "spw0_field1": b}, path)
     # CLEAN needs one pointing; the dirty imager makes a linear mosaic instead
-    with pytest.raises(XstackError, match="different phase centres"):
+    with pytest.raises(XstackError, match="different phase centers"):
         clean_data(path, size=32, cell_arcsec=1.0, niter=5)
-    with pytest.raises(XstackError, match="different phase centres"):
+    with pytest.raises(XstackError, match="different phase centers"):
         Imager(path, size=32, cell_arcsec=1.0)
     assert make_image(path, size=32, cell_arcsec=1.0).header["XSMOSAIC"] == 2
     r = make_image(path, size=32, cell_arcsec=1.0, partitions="*field1")
@@ -191,12 +191,12 @@ def _alma_mosaic(src_flux, src, offsets, noise=0.0, n_time=6, n_ant=10, seed=0):
     freq = 230e9 + 100e6 * np.arange(3)
     parts = {}
     for field, (dx, dy) in enumerate(offsets):
-        centre = offset_position(dx, dy)
-        att = beam(angular_separation(*centre, *src), freq)[None, :]
+        center = offset_position(dx, dy)
+        att = beam(angular_separation(*center, *src), freq)[None, :]
         parts[f"spw0_field{field}"] = make_sky_partition(
             [(src[0], src[1], src_flux)], n_time=n_time, n_ant=n_ant, freq0=230e9,
             chan_width=100e6, n_chan=3, telescope="ALMA", dish=12.0, max_baseline=400.0,
-            phase_center=centre, field_id=field, attenuation=att, noise=noise, seed=seed + field)
+            phase_center=center, field_id=field, attenuation=att, noise=noise, seed=seed + field)
     return parts, beam, freq
 
 
@@ -214,10 +214,10 @@ def test_linear_mosaic_equals_direct_fourier_sum(tmp_path):
     size, cell = 48, 1.5
     res = make_image(tmp_path / "m.zarr", size=size, cell_arcsec=cell, epsilon=1e-9, pb_cutoff=0.05)
     assert res.header["XSMOSAIC"] == 3
-    # the mosaic centre: the mean direction of the pointings, at the reference pixel
-    centre = offset_position(0.0, 20.0 / 3)
+    # the mosaic center: the mean direction of the pointings, at the reference pixel
+    center = offset_position(0.0, 20.0 / 3)
     ra_c, dec_c = res.wcs.pixel_to_world_values(size // 2, size // 2)
-    assert angular_separation_deg(ra_c, dec_c, *np.degrees(centre)) * 3600 < 0.02
+    assert angular_separation_deg(ra_c, dec_c, *np.degrees(center)) * 3600 < 0.02
     # every pixel's sky direction from astropy's own WCS of the written file
     wcs = WCS(res.header).celestial
     yy, xx = np.mgrid[0:size, 0:size]
@@ -251,7 +251,7 @@ def test_linear_mosaic_equals_direct_fourier_sum(tmp_path):
     ok = np.isfinite(expect)
     assert ok.sum() > 0.5 * ok.size
     assert np.max(np.abs(res.image[ok] - expect[ok])) < 1e-5 * np.nanmax(np.abs(expect))
-    np.testing.assert_allclose(res.pb, pb_expect, rtol=1e-6)  # equal pointing weights
+    np.testing.assert_allclose(res.primary_beam, pb_expect, rtol=1e-6)  # equal pointing weights
     assert res.header["XSPBNORM"] == pytest.approx(np.sqrt(den / 3).max(), rel=1e-6)
 
 
@@ -265,7 +265,7 @@ def test_linear_mosaic_recovers_flux_between_pointings(tmp_path):
     """A source where each pointing sees it at ~half power: the mosaic shows its true flux at
     its catalog position, and pointings with more weight count more."""
     size, cell = 96, 0.5
-    # put the source on a pixel centre of the mosaic grid (centre = mean of the pointings)
+    # put the source on a pixel center of the mosaic grid (center = mean of the pointings)
     offsets = [(-10.0, 0.0), (10.0, 0.0)]
     probe = make_image(_alma_mosaic(0.0, offset_position(0, 0), offsets)[0], size=size,
                        cell_arcsec=cell)
@@ -278,7 +278,7 @@ def test_linear_mosaic_recovers_flux_between_pointings(tmp_path):
     parts["spw0_field1"] = parts["spw0_field1"].assign(WEIGHT=(parts["spw0_field1"].WEIGHT.dims, w))
     res = make_image(parts, size=size, cell_arcsec=cell)
     # away from the well-covered area 1/A amplifies the sidelobes: look where pb > 0.5
-    y, x = np.unravel_index(np.nanargmax(np.where(res.pb > 0.5, res.image, -np.inf)),
+    y, x = np.unravel_index(np.nanargmax(np.where(res.primary_beam > 0.5, res.image, -np.inf)),
                             res.image.shape)
     assert (y, x) == (size // 2 + 4, size // 2 - 6)
     assert res.image[y, x] == pytest.approx(0.05, rel=1e-4)
@@ -292,18 +292,18 @@ def test_linear_mosaic_recovers_flux_between_pointings(tmp_path):
         sep = single.wcs.pixel_to_world(size // 2, size // 2).separation(world)
         att = float(np.mean(beam(sep.rad, freq)))
         assert 0.3 < att < 0.95
-        # (each pointing's own grid is centred on it: find the source there)
+        # (each pointing's own grid is centered on it: find the source there)
         sx, sy = single.wcs.world_to_pixel(world)
         assert single.image[int(round(float(sy))), int(round(float(sx)))] == \
             pytest.approx(0.05 * att, rel=0.02)
     assert res.psf[size // 2, size // 2] == pytest.approx(1.0, abs=1e-6)
     # the flat-noise image is the mosaic times the effective beam
     ok = np.isfinite(res.image)
-    np.testing.assert_allclose(res.extra["uncorrected"][ok], (res.image * res.pb)[ok], rtol=1e-9)
+    np.testing.assert_allclose(res.extra["uncorrected"][ok], (res.image * res.primary_beam)[ok], rtol=1e-9)
     # NaN exactly where the effective beam (peak 1) is below the 0.1 cutoff
-    assert res.pb.max() == pytest.approx(1.0)
-    assert np.isnan(res.image[res.pb < 0.1]).all()
-    assert np.isfinite(res.image[res.pb >= 0.1]).all()
+    assert res.primary_beam.max() == pytest.approx(1.0)
+    assert np.isnan(res.image[res.primary_beam < 0.1]).all()
+    assert np.isfinite(res.image[res.primary_beam >= 0.1]).all()
     assert np.isnan(res.image).any()
 
 
@@ -334,7 +334,7 @@ def test_off_pixel_source_within_pixelisation_loss():
     from xstack.imaging.kernels import gaussian_image
 
     bmaj, bmin, bpa = res.beam
-    g = gaussian_image(64, 64, bmaj / cell, bmin / cell, bpa, centre=(32 + 4.5, 32 + 10.5))
+    g = gaussian_image(64, 64, bmaj / cell, bmin / cell, bpa, center=(32 + 4.5, 32 + 10.5))
     expected = g[y, x]
     assert 0.8 < expected < 0.99
     assert res.image[y, x] == pytest.approx(expected, abs=0.02)
@@ -346,7 +346,7 @@ def test_type3_size_image_is_practical():
     """A 4000 x 4000 image (paper type 3: 30' at 0.45") with w-term, point source recovered."""
     import time
 
-    src = offset_position(-400.0, 300.0)  # 8' off-centre: the w-term matters
+    src = offset_position(-400.0, 300.0)  # 8' off-center: the w-term matters
     ds = make_sky_partition([(src[0], src[1], 1.0)], n_time=60, n_ant=27, n_chan=4,
                             max_baseline=30000.0)
     t = time.perf_counter()

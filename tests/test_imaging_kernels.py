@@ -38,7 +38,7 @@ def test_gridder_equals_direct_fourier_sum(rng, cell_arcsec):
 
 
 def test_point_source_lands_on_its_pixel_with_right_orientation():
-    """A source east (+l) appears left of centre (smaller x); north (+m) above (larger y)."""
+    """A source east (+l) appears left of center (smaller x); north (+m) above (larger y)."""
     n, cell = 64, 10 * ARCSEC
     rng = np.random.default_rng(3)
     uvw = _random_uvw(rng, 300, 800.0)

@@ -2,7 +2,7 @@
 
 The data are uncalibrated, so no clean point source is expected; what must hold is the
 adjointness of imaging and prediction on the real uv geometry, and a WCS that puts each
-partition's phase centre at the reference pixel.
+partition's phase center at the reference pixel.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from conftest import make_partition
 
 from xstack.coords import SPEED_OF_LIGHT, radec_to_lmn
 from xstack.imstack.io import read_stack_fits
-from xstack.imstack.stack import imstack
+from xstack.imstack.stack import stack_images
 
 imaging = pytest.importorskip("xstack.imaging.image")
 
@@ -25,7 +25,7 @@ def test_stack_of_an_xstack_dirty_image_with_its_psf(tmp_path):
     size, cell = 128, 0.12
     first = imaging.make_image(ds, size=size, cell_arcsec=cell)  # geometry and beam
     c = size // 2
-    offsets = [(7.31, -5.62), (-9.55, 11.27), (14.4, 6.8)]  # pixels from the centre
+    offsets = [(7.31, -5.62), (-9.55, 11.27), (14.4, 6.8)]  # pixels from the center
     ra, dec = first.wcs.pixel_to_world_values([c + dx for dx, _ in offsets],
                                               [c + dy for _, dy in offsets])
     ra0, dec0 = ds.attrs["phase_center"]
@@ -51,17 +51,17 @@ def test_stack_of_an_xstack_dirty_image_with_its_psf(tmp_path):
     # (correctly) marked as not primary-beam corrected and would otherwise be divided by A
     for k, path in enumerate(paths):
         out = tmp_path / f"near{k}.fits"
-        near = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", out=out, pb="none")
+        near = stack_images(path, pos[k:k + 1], stamp_size=48, weighting="none", out=out, primary_beam="none")
         # the dirty image at the nearest pixel is the PSF at the offset; the stack's PSF
         # extension (the PSF displaced by the offset) predicts it for this non-Gaussian beam
         back = read_stack_fits(out)
-        assert near.flux_jy == pytest.approx(back["psf"][back["centre"]], rel=2e-3)
+        assert near.flux_jy == pytest.approx(back["psf"][back["center"]], rel=2e-3)
         assert near.flux_jy < 0.99  # the offset does cost flux at this sampling
-        fourier = imstack(path, pos[k:k + 1], stamp_size=48, weighting="none", subpixel="fourier",
-                          pb="none")
+        fourier = stack_images(path, pos[k:k + 1], stamp_size=48, weighting="none", subpixel="fourier",
+                          primary_beam="none")
         assert fourier.flux_jy == pytest.approx(1.0, abs=5e-3)
         assert fourier.beam_arcsec == pytest.approx(first.beam, rel=1e-6)
         # the in-memory ImageResult (image, header, psf) stacks like its FITS files
-        mem = imstack(results[k], pos[k:k + 1], stamp_size=48, weighting="none", pb="none")
+        mem = stack_images(results[k], pos[k:k + 1], stamp_size=48, weighting="none", primary_beam="none")
         np.testing.assert_allclose(mem.stacked.values, near.stacked.values, rtol=1e-6)
         np.testing.assert_allclose(mem.psf_stamp.values, near.psf_stamp.values, atol=1e-6)

@@ -71,7 +71,7 @@ def test_spline_shift_accuracy_and_nan_guard():
 
 
 @pytest.mark.parametrize("method", ["fourier", "spline"])
-def test_align_stamps_centres_the_source(method):
+def test_align_stamps_centers_the_source(method):
     shape = (80, 90)
     x0, y0 = 41.37, 36.62
     img = _gauss(shape, x0, y0, 2.0, 3.0)

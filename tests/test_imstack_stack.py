@@ -21,7 +21,7 @@ from xstack.coords import angular_separation
 from xstack.errors import XstackError
 from xstack.imstack import kernels
 from xstack.imstack.io import read_stack_fits
-from xstack.imstack.stack import imstack
+from xstack.imstack.stack import stack_images
 
 BEAM = (3.2, 1.6, 0.0)  # the paper's VLA A-array beam at 1.4 GHz, arcsec
 
@@ -40,7 +40,7 @@ def fields(tmp_path_factory):
 @pytest.mark.parametrize("cell", [0.25, 0.5])
 def test_nearest_pixel_loses_exactly_the_pixelisation_factor(fields, cell):
     path, ra, dec, _, _ = fields[cell]
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none")
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none")
     assert res.n_positions == 400
     # exact expectation for these positions: the beam at each one's sub-pixel offset
     exact = expected_nearest(res.cube.frac_x.values, res.cube.frac_y.values, cell, BEAM)
@@ -53,7 +53,7 @@ def test_nearest_pixel_loses_exactly_the_pixelisation_factor(fields, cell):
         assert 0.002 < loss < 0.015
     else:             # paper: ~5 % (Gaussian-beam prediction 2.8 %)
         assert 0.018 < loss < 0.05
-    # the stack's PSF carries the same smear: its centre is the expected factor
+    # the stack's PSF carries the same smear: its center is the expected factor
     assert res.psf_stamp is not None
     assert float(res.psf_stamp.values[16, 16]) == pytest.approx(exact, abs=1e-4)
 
@@ -61,7 +61,7 @@ def test_nearest_pixel_loses_exactly_the_pixelisation_factor(fields, cell):
 @pytest.mark.parametrize("cell,method", [(0.25, "fourier"), (0.5, "fourier"), (0.5, "spline")])
 def test_subpixel_alignment_recovers_flux_within_one_percent(fields, cell, method):
     path, ra, dec, _, _ = fields[cell]
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel=method)
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel=method)
     assert abs(res.flux_jy - 1.0) < 0.01
     assert abs(res.flux_jy - 1.0) < 4 * res.flux_err_jy + (1e-3 if method == "fourier" else 3e-3)
     assert float(res.psf_stamp.values[16, 16]) == pytest.approx(1.0, abs=1e-9)
@@ -73,8 +73,8 @@ def test_median_and_mean_agree_on_gaussian_noise(tmp_path):
     sigma, n = 1.0, 400
     path, ra, dec, _, _ = make_field(tmp_path, rng, 0.5, beam=BEAM, noise=sigma, spacing=40)
     pos = np.c_[ra, dec]
-    mean = imstack(path, pos, stamp_size=32, weighting="none", subpixel="fourier")
-    med = imstack(path, pos, stamp_size=32, method="median", weighting="none", subpixel="fourier")
+    mean = stack_images(path, pos, stamp_size=32, weighting="none", subpixel="fourier")
+    med = stack_images(path, pos, stamp_size=32, method="median", weighting="none", subpixel="fourier")
     # median - mean of N Gaussian values: zero mean, std sqrt(pi/2 - 1) sigma / sqrt(N)
     sd = np.sqrt(np.pi / 2 - 1) * sigma / np.sqrt(n)
     assert abs(med.flux_jy - mean.flux_jy) < 4 * sd
@@ -102,7 +102,7 @@ def test_sigma2_weights_follow_eq3_and_eq5(tmp_path):
     img += rng.normal(size=img.shape) * noise_map
     path = write_image(tmp_path / "noisy.fits", img, w, BEAM)
     ra, dec = w.pixel_to_world_values(px, py)
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="sigma2", subpixel="fourier")
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="sigma2", subpixel="fourier")
     cube = res.cube
     # independent sigma_k: std (ddof 1) outside a circle of radius BMAJ in arcsec offsets
     r = np.hypot(cube.x.values[None, :], cube.y.values[:, None])
@@ -118,7 +118,7 @@ def test_sigma2_weights_follow_eq3_and_eq5(tmp_path):
     np.testing.assert_allclose(res.stacked.values, manual, rtol=1e-10)
     assert res.flux_err_jy == pytest.approx(1 / np.sqrt(wk.sum()), rel=1e-10)  # eq. 5
     np.testing.assert_allclose(res.weights[:, 0], wk)
-    unweighted = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    unweighted = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
     assert res.flux_err_jy < 0.75 * unweighted.flux_err_jy
     assert abs(res.flux_jy - 1.0) < 4 * res.flux_err_jy
     assert res.stamp_rms_jy == pytest.approx(res.flux_err_jy, rel=0.15)
@@ -139,7 +139,7 @@ def test_edge_stamps_do_not_bias_the_stack(tmp_path, subpixel):
     img += rng.normal(0, 1e-3, img.shape)
     path = write_image(tmp_path / "edge.fits", img, w, BEAM)
     ra, dec = w.pixel_to_world_values(px, py)
-    res = imstack(path, np.c_[ra, dec], stamp_size=40, weighting="none", subpixel=subpixel)
+    res = stack_images(path, np.c_[ra, dec], stamp_size=40, weighting="none", subpixel=subpixel)
     cube = res.cube.values
     assert np.isnan(cube).any()  # stamps do run off the image
     truth = bg + (1.0 if subpixel else expected_nearest(res.cube.frac_x.values,
@@ -159,15 +159,15 @@ def test_mosaic_pointings_with_pb_weights_and_4d_axes(tmp_path):
     rng = np.random.default_rng(8)
     cell, n, beam, freq = 0.2, 256, (1.0, 0.8, 30.0), 230e9
     pb = standard_beam("ALMA", 12.0)
-    centres = [(57.30, -30.0), (57.30 + 20 / 3600 / np.cos(np.radians(30)), -30.0)]
-    mid_ra = 0.5 * (centres[0][0] + centres[1][0])
+    centers = [(57.30, -30.0), (57.30 + 20 / 3600 / np.cos(np.radians(30)), -30.0)]
+    mid_ra = 0.5 * (centers[0][0] + centers[1][0])
     ra = mid_ra + (np.arange(25) % 5 - 2) * 3.0 / 3600 / np.cos(np.radians(30)) \
         + rng.uniform(-0.1, 0.1, 25) / 3600
     dec = -30.0 + (np.arange(25) // 5 - 2) * 3.0 / 3600 + rng.uniform(-0.1, 0.1, 25) / 3600
-    ra = np.append(ra, centres[0][0] - 9 / 3600)  # seen by pointing 0 only (A1 < 0.1)
+    ra = np.append(ra, centers[0][0] - 9 / 3600)  # seen by pointing 0 only (A1 < 0.1)
     dec = np.append(dec, -30.0)
     paths, atten = [], []
-    for i, (r0, d0) in enumerate(centres):
+    for i, (r0, d0) in enumerate(centers):
         w = sin_wcs(n, cell, r0, d0)
         a = pb(angular_separation(np.radians(ra), np.radians(dec), np.radians(r0), np.radians(d0)), freq)
         px, py = w.world_to_pixel_values(ra, dec)
@@ -177,7 +177,7 @@ def test_mosaic_pointings_with_pb_weights_and_4d_axes(tmp_path):
         atten.append(a)
     atten = np.array(atten).T
     assert atten[-1, 1] < 0.1 < atten[-1, 0]
-    res = imstack(paths, np.c_[ra, dec], stamp_size=40, weighting="pb", pbcor=True, subpixel="fourier")
+    res = stack_images(paths, np.c_[ra, dec], stamp_size=40, weighting="pb", pbcor=True, subpixel="fourier")
     seen = atten >= 0.1
     np.testing.assert_allclose(res.weights, np.where(seen, atten**2, 0.0), rtol=1e-9)
     assert res.n_positions == 26 and res.n_stamps == int(seen.sum()) == 51
@@ -203,8 +203,8 @@ def test_no_primary_beam_correction_beyond_the_first_null(tmp_path):
     path = write_image(tmp_path / "a.fits", img, w, beam, four_d=True, freq_hz=freq,
                        extra={"TELESCOP": "ALMA"})
     assert pb(np.radians(1.3 * r_null / 3600), freq) > 0.01
-    res = imstack(path, np.c_[ra, dec], stamp_size=16, weighting="pb", pbcor=True,
-                  pb=pb, skip_outside=True)
+    res = stack_images(path, np.c_[ra, dec], stamp_size=16, weighting="pb", pbcor=True,
+                  primary_beam=pb, skip_outside=True)
     assert list(res.weights[:, 0] > 0) == [True, True, False, False]
     assert np.isfinite(res.flux_jy)
 
@@ -217,8 +217,8 @@ def test_four_d_image_equals_two_d(tmp_path):
     p4 = write_image(tmp_path / "b.fits", img, w, BEAM, four_d=True)
     ra, dec = w.pixel_to_world_values([30.3, 60.7], [40.2, 55.5])
     pos = np.c_[ra, dec]
-    r2 = imstack(p2, pos, stamp_size=24)
-    r4 = imstack(p4, pos, stamp_size=24)
+    r2 = stack_images(p2, pos, stamp_size=24)
+    r4 = stack_images(p4, pos, stamp_size=24)
     np.testing.assert_array_equal(r2.stacked.values, r4.stacked.values)
 
 
@@ -232,9 +232,9 @@ def test_lowfreq_filter_removes_a_background_offset(fields, tmp_path):
         fits.PrimaryHDU(data, header=h[0].header).writeto(tmp_path / "bg.fits")
     (tmp_path / "bg.psf.fits").write_bytes((tmp_path / "img.psf.fits").read_bytes())
     pos = np.c_[ra, dec]
-    raw = imstack(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier")
+    raw = stack_images(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier")
     assert raw.flux_jy == pytest.approx(1.3, abs=5e-3)
-    filt = imstack(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
+    filt = stack_images(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
                    filter_lowfreq=1)
     # zeroing the DC cell subtracts the stamp mean: background + the source's mean over the stamp
     expected = raw.flux_jy - np.mean(raw.stacked.values)
@@ -242,7 +242,7 @@ def test_lowfreq_filter_removes_a_background_offset(fields, tmp_path):
     assert abs(filt.flux_jy - (1.0 - np.mean(raw.psf_stamp.values) * 1.0)) < 0.02
     assert float(filt.psf_stamp.values[32, 32]) == pytest.approx(1 - np.mean(raw.psf_stamp.values))
     # a uv distance: one Fourier cell of a 64 x 0.5" stamp is 6446 lambda
-    by_q = imstack(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
+    by_q = stack_images(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
                    filter_lowfreq="1klambda")
     assert by_q.flux_jy == pytest.approx(filt.flux_jy, abs=1e-12)
 
@@ -250,7 +250,7 @@ def test_lowfreq_filter_removes_a_background_offset(fields, tmp_path):
 def test_outputs_layout_and_roundtrip(fields, tmp_path):
     path, ra, dec, _, _ = fields[0.5]
     out = tmp_path / "stack.fits"
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, subpixel="fourier", out=out)
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, subpixel="fourier", out=out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.cube.zarr", "stack.fits", "stack.png"]
     with fits.open(out) as hdul:
         assert [h.name for h in hdul] == ["PRIMARY", "PSF", "WEIGHTS"]
@@ -261,14 +261,14 @@ def test_outputs_layout_and_roundtrip(fields, tmp_path):
         assert hdul[0].data[16, 16] == pytest.approx(res.flux_jy)
         assert hdul["PSF"].data.max() == pytest.approx(1.0)
     back = read_stack_fits(out)
-    assert back["centre"] == (16, 16) and back["pixel_arcsec"][0] == pytest.approx(0.5)
+    assert back["center"] == (16, 16) and back["pixel_arcsec"][0] == pytest.approx(0.5)
     cube = xr.open_zarr(tmp_path / "stack.cube.zarr", consolidated=False)
     np.testing.assert_array_equal(cube["stamps"].values, res.cube.values)
     np.testing.assert_array_equal(cube["stamps"].position.values, np.arange(400))
     json.dumps(res.to_dict())
     with pytest.raises(XstackError, match="exists"):
-        imstack(path, np.c_[ra, dec], stamp_size=32, out=out)
-    res2 = imstack(path, np.c_[ra, dec], stamp_size=32, out=out, overwrite=True, cube_format="fits",
+        stack_images(path, np.c_[ra, dec], stamp_size=32, out=out)
+    res2 = stack_images(path, np.c_[ra, dec], stamp_size=32, out=out, overwrite=True, cube_format="fits",
                    plot=False)
     with fits.open(tmp_path / "stack.cube.fits") as hdul:
         assert hdul[0].data.shape == (400, 32, 32)
@@ -295,15 +295,15 @@ def test_bad_input_raises_and_writes_nothing(fields, tmp_path):
     out = outdir / "s.fits"
     pos = np.c_[ra, dec]
     with pytest.raises(XstackError, match="celestial"):
-        imstack(_no_celestial(tmp_path), pos, out=out)
+        stack_images(_no_celestial(tmp_path), pos, out=out)
     with pytest.raises(XstackError, match="outside every image.*row 401"):
-        imstack(path, np.vstack([pos, [[ra[0] + 1.0, dec[0]]]]), stamp_size=32, out=out)
+        stack_images(path, np.vstack([pos, [[ra[0] + 1.0, dec[0]]]]), stamp_size=32, out=out)
     with pytest.raises(XstackError, match="larger than the image"):
-        imstack(path, pos, stamp_size=1000, out=out)
+        stack_images(path, pos, stamp_size=1000, out=out)
     with pytest.raises(XstackError, match="method"):
-        imstack(path, pos, method="mode", out=out)
+        stack_images(path, pos, method="mode", out=out)
     with pytest.raises(XstackError, match="no such image"):
-        imstack(tmp_path / "missing.fits", pos, out=out)
+        stack_images(tmp_path / "missing.fits", pos, out=out)
     w = sin_wcs(60, 0.5)
     cube_like = fits.Header(w.to_header())
     cube_like["NAXIS"] = 3
@@ -312,13 +312,13 @@ def test_bad_input_raises_and_writes_nothing(fields, tmp_path):
     p3 = tmp_path / "cube3.fits"
     fits.PrimaryHDU(np.zeros((4, 60, 60), np.float32), header=cube_like).writeto(p3)
     with pytest.raises(XstackError, match="4 planes"):
-        imstack(p3, pos, out=out)
+        stack_images(p3, pos, out=out)
     coarse = write_image(tmp_path / "coarse.fits", np.zeros((100, 100)), sin_wcs(100, 1.0), BEAM)
     with pytest.raises(XstackError, match="pixel scale"):
-        imstack([path, coarse], pos, stamp_size=32, out=out)
+        stack_images([path, coarse], pos, stamp_size=32, out=out)
     assert list(outdir.iterdir()) == []
     # skipping works when asked and reports the row
-    res = imstack(path, np.vstack([pos, [[ra[0] + 1.0, dec[0]]]]), stamp_size=32, skip_outside=True)
+    res = stack_images(path, np.vstack([pos, [[ra[0] + 1.0, dec[0]]]]), stamp_size=32, skip_outside=True)
     assert res.skipped_rows == [401] and res.n_positions == 400
 
 
@@ -330,9 +330,9 @@ def test_blanked_pixels_are_excluded_per_pixel(tmp_path):
         hdr = h[0].header
     data[:, : int(px[0]) + 3] = np.nan  # a blanked strip through the first column of sources
     fits.PrimaryHDU(data, header=hdr).writeto(tmp_path / "blank.fits")
-    res = imstack(tmp_path / "blank.fits", np.c_[ra, dec], stamp_size=32, weighting="none",
+    res = stack_images(tmp_path / "blank.fits", np.c_[ra, dec], stamp_size=32, weighting="none",
                   subpixel="fourier", skip_outside=True)
-    # positions whose centre pixel is blanked are not covered; the rest still give the flux
+    # positions whose center pixel is blanked are not covered; the rest still give the flux
     assert res.n_positions == 30 and res.skipped_rows == [1 + 6 * k for k in range(6)]
     assert res.flux_jy == pytest.approx(1.0, abs=5e-3)
     assert kernels.SPLINE_NAN_GUARD > 0
@@ -343,7 +343,7 @@ def test_public_api_name_is_callable(fields):
 
     path, ra, dec, _, _ = fields[0.5]
     # the package xstack.imstack is already imported here and shadows the lazy API name
-    res = xstack.imstack(path, np.c_[ra[:10], dec[:10]], stamp_size=32)
+    res = xstack.stack_images(path, np.c_[ra[:10], dec[:10]], stamp_size=32)
     assert isinstance(res, xstack.imstack.ImstackResult) and res.n_positions == 10
 
 
@@ -354,7 +354,7 @@ def test_ra_wrap_and_poles(tmp_path, ra0, dec0):
                                      ra0=ra0, dec0=dec0)
     if ra0 == 0.0:
         assert (ra > 359).any() and (ra < 1).any()  # positions on both sides of RA = 0
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
     assert res.n_positions == 36
     assert res.flux_jy == pytest.approx(1.0, abs=5e-3)
 
@@ -367,11 +367,11 @@ def test_pb_weights_from_a_pb_fits_image(fields, tmp_path):
     yy, xx = np.indices((ny, nx))
     pbimg = np.exp(-((xx - nx / 2) ** 2 + (yy - ny / 2) ** 2) / (2 * (nx / 3) ** 2))
     fits.PrimaryHDU(pbimg.astype(np.float32), header=hdr).writeto(tmp_path / "pb.fits")
-    res = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="pb", pb=tmp_path / "pb.fits")
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="pb", primary_beam=tmp_path / "pb.fits")
     a = pbimg[np.floor(py + 0.5).astype(int), np.floor(px + 0.5).astype(int)].astype(np.float32)
     np.testing.assert_allclose(res.weights[:, 0], a.astype(np.float64) ** 2, rtol=1e-6)
     with pytest.raises(XstackError, match="primary beam"):
-        imstack(path, np.c_[ra, dec], stamp_size=32, weighting="pb")  # no TELESCOP, no pb=
+        stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="pb")  # no TELESCOP, no primary_beam=
 
 
 def test_rotated_wcs_and_rotated_beam(tmp_path):
@@ -396,22 +396,22 @@ def test_rotated_wcs_and_rotated_beam(tmp_path):
     img += rng.normal(0, 1e-3, img.shape)
     path = write_image(tmp_path / "rot.fits", img, w, beam)
     ra, dec = w.pixel_to_world_values(px, py)
-    near = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none")
+    near = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none")
     fx, fy = near.cube.frac_x.values, near.cube.frac_y.values
     exact = np.mean(gauss_beam(-(m[0, 0] * fx + m[0, 1] * fy), -(m[1, 0] * fx + m[1, 1] * fy), *beam))
     assert near.flux_jy == pytest.approx(exact, abs=5e-4)
     assert near.pixelisation_factor == pytest.approx(exact, abs=3e-3)
     assert near.pixel_arcsec == pytest.approx((0.5, 0.5))
-    sub = imstack(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    sub = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
     assert sub.flux_jy == pytest.approx(1.0, abs=3e-3)
 
 
 @pytest.mark.parametrize("size", [31, 33, 48])
-def test_odd_and_even_stamp_sizes_centre_the_source(fields, size):
+def test_odd_and_even_stamp_sizes_center_the_source(fields, size):
     path, ra, dec, _, _ = fields[0.5]
     c = size // 2
     for sub in (False, "fourier", "spline"):
-        res = imstack(path, np.c_[ra[:100], dec[:100]], stamp_size=size, weighting="none", subpixel=sub)
+        res = stack_images(path, np.c_[ra[:100], dec[:100]], stamp_size=size, weighting="none", subpixel=sub)
         assert res.stacked.shape == (size, size)
         assert np.unravel_index(np.nanargmax(res.stacked.values), res.stacked.shape) == (c, c)
         assert float(res.stacked.x[c]) == 0.0 and float(res.stacked.y[c]) == 0.0

@@ -1,7 +1,7 @@
 """``xstack info`` (issue 11 item 5): what listobs/imhead tell, checked against outside truth.
 
 Truth comes from python-casacore reads of the real MSs in the pyuvdata wheel (never through
-xstack's reader), from the simulator's known scene (phase centre, band, array, noise sigma),
+xstack's reader), from the simulator's known scene (phase center, band, array, noise sigma),
 and from an image written by ``xstack image`` with known options.
 """
 
@@ -123,7 +123,7 @@ def test_real_ms_and_its_store_tell_what_casacore_reads(tmp_path, name):
         assert 0.09 < s["flagged_fraction"] < 0.11
 
 
-def test_evla_sexagesimal_phase_centre(tmp_path):
+def test_evla_sexagesimal_phase_center(tmp_path):
     ms = require_real_ms("evla", tmp_path)
     d, _ = _quiet_info(ms)
     (f,) = d["fields"]
@@ -133,15 +133,15 @@ def test_evla_sexagesimal_phase_centre(tmp_path):
 
 
 def _sim_scene(sigma: float) -> dict:
-    from xstack.sim.scene import PAPER_FIELD_CENTRE
+    from xstack.sim.scene import PAPER_FIELD_CENTER
 
-    ra0, dec0 = PAPER_FIELD_CENTRE
+    ra0, dec0 = PAPER_FIELD_CENTER
     return {
         "name": "info", "array": {"config": "alma.cycle1.2"},
         "observation": {"hour_angle": [-0.5, 0.5], "integration": 6.0, "time_per_pointing": 60.0},
-        "spectral": {"centre": 230e9, "bandwidth": 2e9, "channels": 16,
+        "spectral": {"center": 230e9, "bandwidth": 2e9, "channels": 16,
                      "polarizations": ["XX", "YY"]},
-        "pointings": {"mode": "single", "centre": [ra0, dec0]},
+        "pointings": {"mode": "single", "center": [ra0, dec0]},
         "effects": {"noise": {"sigma": sigma}},
         "populations": [{"name": "p", "count": 1, "flux": {"kind": "fixed", "value": 1e-3},
                          "positions": {"kind": "list", "ra": [ra0], "dec": [dec0]},
@@ -159,19 +159,19 @@ def sim_store(tmp_path_factory):
 
 def test_simulated_store_matches_its_scene(sim_store):
     from xstack.sim.arrays import packaged_array
-    from xstack.sim.scene import PAPER_FIELD_CENTRE
+    from xstack.sim.scene import PAPER_FIELD_CENTER
 
     _, store, _ = sim_store
     d, msgs = _quiet_info(store)
     assert msgs == []  # weights are 1/sigma^2 of the simulated noise: nothing to warn about
     (f,) = d["fields"]
-    assert f["ra_deg"] == pytest.approx(PAPER_FIELD_CENTRE[0], abs=1e-9)
-    assert f["dec_deg"] == pytest.approx(PAPER_FIELD_CENTRE[1], abs=1e-9)
+    assert f["ra_deg"] == pytest.approx(PAPER_FIELD_CENTER[0], abs=1e-9)
+    assert f["dec_deg"] == pytest.approx(PAPER_FIELD_CENTER[1], abs=1e-9)
     assert f["ra_hms"].startswith("03:49:10.99") and f["dec_dms"] == "-30:00:00.000"
     (spw,) = d["spectral_windows"]
     assert spw["n_channels"] == 16
     assert spw["total_bandwidth_hz"] == pytest.approx(2e9)
-    assert spw["centre_hz"] == pytest.approx(230e9)
+    assert spw["center_hz"] == pytest.approx(230e9)
     assert d["time"]["integration_s"] == 6.0
     assert d["time"]["duration_s"] == pytest.approx(60.0)
     n_ant = packaged_array("alma.cycle1.2").n_antennas
@@ -205,14 +205,14 @@ def test_image_written_by_xstack_image(sim_store, capsys):
     assert main(["info", str(out), "--json"]) == 0
     cap = capsys.readouterr()
     info = json.loads(cap.out)
-    from xstack.sim.scene import PAPER_FIELD_CENTRE
+    from xstack.sim.scene import PAPER_FIELD_CENTER
 
     assert info["kind"] == "fits"
     assert info["size"] == [64, 64]
     assert info["cell_arcsec"] == pytest.approx([0.5, 0.5])
     assert info["bunit"] == "Jy/beam"
-    assert info["reference"]["ra_deg"] == pytest.approx(PAPER_FIELD_CENTRE[0], abs=1e-9)
-    assert info["reference"]["dec_deg"] == pytest.approx(PAPER_FIELD_CENTRE[1], abs=1e-9)
+    assert info["reference"]["ra_deg"] == pytest.approx(PAPER_FIELD_CENTER[0], abs=1e-9)
+    assert info["reference"]["dec_deg"] == pytest.approx(PAPER_FIELD_CENTER[1], abs=1e-9)
     assert info["frequency_hz"] == pytest.approx(230e9, rel=0.01)
     assert info["primary_beam"]["corrected"] is True
     assert info["primary_beam"]["file_exists"] is True

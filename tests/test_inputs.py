@@ -82,7 +82,7 @@ def _entry_points(data, tmp_path):
     cat = Table({"ra": [RA0], "dec": [DEC0]})
     model = Table({"ra": [RA0], "dec": [DEC0], "flux": [1e-3]})
     return {
-        "uvstack": lambda: xstack.uvstack(data, cat),
+        "uvstack": lambda: xstack.stack_uv(data, cat),
         "make_image": lambda: xstack.make_image(data, size=32, cell_arcsec=0.1),
         "subtract": lambda: xstack.subtract(data, model, tmp_path / "out.zarr"),
         "fit_uv": lambda: xstack.fit_uv(data),

@@ -20,16 +20,16 @@ from astropy.io import fits
 
 from xstack.beams import BAND_TOP_KEY, covered, inside_field, standard_beam
 from xstack.imaging.image import make_image
-from xstack.imstack.stack import imstack
+from xstack.imstack.stack import stack_images
 from xstack.noise.estimate import estimate_noise
 from xstack.sim.presets import preset_dict
 from xstack.sim.simulate import simulate, simulate_partitions
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 #: radius / (cutoff radius at the highest channel) and position angle (deg) of each row
 FRACTIONS = [0.3, 0.8, 0.99, 1.01, 1.06, 1.12, 0.6, 1.03]
 ANGLES = [10.0, 100.0, 200.0, 300.0, 45.0, 135.0, 225.0, 315.0]
-CENTRE_GHZ, BANDWIDTH_GHZ, CHANNELS = 100.0, 40.0, 3
+CENTER_GHZ, BANDWIDTH_GHZ, CHANNELS = 100.0, 40.0, 3
 
 
 def _offsets_deg(ra0: float, dec0: float, r_arcsec: np.ndarray, pa_deg: np.ndarray):
@@ -45,9 +45,9 @@ def _offsets_deg(ra0: float, dec0: float, r_arcsec: np.ndarray, pa_deg: np.ndarr
 def chain(tmp_path_factory):
     d = tmp_path_factory.mktemp("inside")
     scene = preset_dict("paper-8")  # ALMA 12 m antennas, here as one pointing
-    ra0, dec0 = scene["pointings"]["centre"]
-    scene["pointings"] = {"mode": "single", "centre": [ra0, dec0]}
-    scene["spectral"].update(centre=CENTRE_GHZ * 1e9, bandwidth=BANDWIDTH_GHZ * 1e9,
+    ra0, dec0 = scene["pointings"]["center"]
+    scene["pointings"] = {"mode": "single", "center": [ra0, dec0]}
+    scene["spectral"].update(center=CENTER_GHZ * 1e9, bandwidth=BANDWIDTH_GHZ * 1e9,
                              channels=CHANNELS)
     scene["observation"].update(time_per_pointing=600.0, integration=60.0)
     scene["effects"]["noise"] = {"sigma": 0.05}
@@ -107,8 +107,8 @@ def test_every_stage_admits_the_same_rows(chain):
     outside = sorted(set(range(len(FRACTIONS))) - set(expected))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = uvstack(chain["store"], chain["cat"], out=None)
-        st = imstack(chain["image"], chain["cat"], stamp_size=33, skip_outside=True,
+        res = stack_uv(chain["store"], chain["cat"], out=None)
+        st = stack_images(chain["image"], chain["cat"], stamp_size=33, skip_outside=True,
                      weighting="pb")
     used = np.asarray(res.positions["used"]).reshape(len(res.positions), -1).any(axis=1)
     assert np.array_equal(np.flatnonzero(used), expected)
@@ -119,7 +119,7 @@ def test_every_stage_admits_the_same_rows(chain):
     assert np.array_equal(rows_im, expected)
     # both stacks measure the true pb-weighted flux of the expected rows
     beam = standard_beam("ALMA", 12.0)
-    ra0, dec0 = preset_dict("paper-8")["pointings"]["centre"]
+    ra0, dec0 = preset_dict("paper-8")["pointings"]["center"]
     theta = np.radians(np.array(FRACTIONS)[expected] * chain["r_top"] / 3600)
     a2 = beam(theta, float(chain["freqs"].mean())) ** 2
     truth = float(np.sum(a2 * chain["fluxes"][expected]) / np.sum(a2))
@@ -145,7 +145,7 @@ def test_imstack_beam_given_explicitly_same_rows(chain, pb):
         chain["image"].with_name("img.pb.fits")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        st = imstack(chain["image"], chain["cat"], stamp_size=33, skip_outside=True, pb=beam)
+        st = stack_images(chain["image"], chain["cat"], stamp_size=33, skip_outside=True, primary_beam=beam)
     assert sorted(k - 1 for k in st.skipped_rows) == \
         sorted(set(range(len(FRACTIONS))) - set(chain["expected"]))
 

@@ -129,20 +129,20 @@ def test_scan_split_when_integration_times_differ(tmp_path):
     assert got == {1: 6.0, 2: 3.0}
 
 
-def test_phase_centre_frame_converted_to_icrs(tmp_path):
+def test_phase_center_frame_converted_to_icrs(tmp_path):
     """FIELD directions in GALACTIC or B1950 are converted to ICRS."""
     ref = make_test_ms(tmp_path / "j.ms", n_fields=2)
 
-    def centres(store):
+    def centers(store):
         parts = dict(iter_partitions(open_store(store)))
         return [parts[name].attrs["phase_center"] for name in sorted(parts)]
 
-    pc_ref = centres(convert_ms(ref, tmp_path / "j.zarr"))
+    pc_ref = centers(convert_ms(ref, tmp_path / "j.zarr"))
     for frame in ("GALACTIC", "B1950"):
         ms = make_test_ms(tmp_path / f"{frame}.ms", n_fields=2, field_frame=frame)
         raw = pt.table(f"{ms}/FIELD", ack=False).getcol("PHASE_DIR")[:, 0]
         assert np.abs(raw - pt.table(f"{ref}/FIELD", ack=False).getcol("PHASE_DIR")[:, 0]).max() > 1e-3
-        pcs = centres(convert_ms(ms, tmp_path / f"{frame}.zarr"))
+        pcs = centers(convert_ms(ms, tmp_path / f"{frame}.zarr"))
         # astropy's FK4 round trip is good to ~1e-9 rad here
         np.testing.assert_allclose(pcs, pc_ref, rtol=0, atol=1e-9)
 

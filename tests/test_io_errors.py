@@ -228,10 +228,10 @@ def test_export_existing_output(tmp_path, good, capsys):
     assert [p.name for p in tmp_path.iterdir()] == ["o.ms"]
 
 
-def test_convert_unsupported_phase_centre_frame(tmp_path):
+def test_convert_unsupported_phase_center_frame(tmp_path):
     ms = make_test_ms(tmp_path / "f.ms", n_times=2)
     with pt.table(f"{ms}/FIELD", readonly=False, ack=False) as t:
         kw = t.getcolkeywords("PHASE_DIR")
         kw["MEASINFO"]["Ref"] = "AZEL"
         t.putcolkeywords("PHASE_DIR", kw)
-    _fails(convert_ms, (ms, tmp_path / "o.zarr"), "phase centre frame AZEL is not supported", tmp_path)
+    _fails(convert_ms, (ms, tmp_path / "o.zarr"), "phase center frame AZEL is not supported", tmp_path)

@@ -1,7 +1,7 @@
 """Image-stacking and image-domain noise on a linear mosaic: its effective beam travels with it.
 
 A paper-8-like ALMA mosaic (230 GHz, hexagonal pointings 20" apart, here 4 of them). Targets
-lie out to ~30" from the mosaic centre, where a single-dish beam centred on the image is
+lie out to ~30" from the mosaic center, where a single-dish beam centered on the image is
 below 1 %, but inside the mosaic. Truth from outside the code: the injected flux (noise-free
 data, one source per mosaic so that no sidelobe confuses it), and for the noise the
 analytic expectation from the visibility noise: a dirty pointing p has pixel variance
@@ -19,14 +19,14 @@ from astropy.io import fits
 from xstack.beams import standard_beam
 from xstack.coords import angular_separation
 from xstack.imaging.image import make_image
-from xstack.imstack.stack import imstack
+from xstack.imstack.stack import stack_images
 from xstack.noise.estimate import estimate_noise
 from xstack.sim.presets import preset_dict
 from xstack.sim.simulate import simulate_partitions
 
 FLUX = 100e-6
 SIZE, CELL = 320, 0.25
-#: (east, north) arcsec from the mosaic centre, on pixel centres of its grid
+#: (east, north) arcsec from the mosaic center, on pixel centers of its grid
 TARGETS = [(0.0, 0.0), (21.0, 4.0), (-2.0, 29.0), (-19.0, -20.0), (12.0, -27.0)]
 
 
@@ -48,7 +48,7 @@ def _mosaic_scene(targets, noise: float | None = None) -> dict:
 
 
 def _position(dx: float, dy: float) -> tuple[float, float]:
-    ra0, dec0 = preset_dict("paper-8")["pointings"]["centre"]
+    ra0, dec0 = preset_dict("paper-8")["pointings"]["center"]
     return ra0 + dx / 3600 / np.cos(np.radians(dec0)), dec0 + dy / 3600
 
 
@@ -85,18 +85,18 @@ def test_every_target_is_inside_the_mosaic_and_stacks_to_its_flux(mosaics):
     beam = standard_beam("ALMA", 12.0)
     first = mosaics[0]["res"]
     allpos = np.concatenate([m["pos"] for m in mosaics])
-    # a beam centred on the image would put most targets outside (the reported bug)
-    gain_centre = beam(angular_separation(*np.radians(allpos.T), *first.phase_center),
+    # a beam centered on the image would put most targets outside (the reported bug)
+    gain_center = beam(angular_separation(*np.radians(allpos.T), *first.phase_center),
                        first.frequency)
-    assert (gain_centre < 0.1).sum() >= 3
+    assert (gain_center < 0.1).sum() >= 3
     # all targets are inside the mosaic: its effective beam covers them
-    res = imstack(mosaics[0]["image"], allpos, stamp_size=32, weighting="pb")
+    res = stack_images(mosaics[0]["image"], allpos, stamp_size=32, weighting="pb")
     assert res.n_positions == len(TARGETS) and res.skipped_rows == []
     assert res.primary_beam[0]["beam"] == "beam file mosaic0.pb.fits"
     # each source's flux, from the corrected mosaic and from its flat-noise residual alike
     for m in mosaics:
         for kind in ("image", "residual"):
-            r = imstack(m[kind], m["pos"], stamp_size=32, subpixel="fourier", weighting="pb")
+            r = stack_images(m[kind], m["pos"], stamp_size=32, subpixel="fourier", weighting="pb")
             assert r.primary_beam[0]["image_corrected"] is (kind == "image")
             assert r.flux_jy == pytest.approx(FLUX, rel=0.02), (kind, m["pos"])
             n = estimate_noise(m[kind], tuple(m["pos"].T), method="analytic", domain="image")
@@ -112,9 +112,9 @@ def test_the_effective_beam_is_the_noise_of_the_corrected_mosaic(mosaics):
         *np.meshgrid(np.arange(SIZE), np.arange(SIZE))))
     den = sum(wp * beam(angular_separation(ra, dec, *p["phase_center"]), res.frequency) ** 2
               for wp, p in zip(w, res.extra["pointings"]))
-    np.testing.assert_allclose(res.pb, np.sqrt(den) / np.sqrt(den).max(), rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(res.primary_beam, np.sqrt(den) / np.sqrt(den).max(), rtol=1e-6, atol=1e-9)
     with fits.open(mosaics[0]["image"].with_name("mosaic0.pb.fits")) as h:
-        np.testing.assert_allclose(np.squeeze(h[0].data), res.pb, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(np.squeeze(h[0].data), res.primary_beam, rtol=1e-6, atol=1e-7)
 
 
 def test_image_noise_on_a_mosaic_matches_the_analytic_expectation(tmp_path):

@@ -14,13 +14,13 @@ from xstack.errors import XstackError
 from xstack.noise.estimate import estimate_noise
 from xstack.noise.positions import random_positions
 
-CENTRE = (1.0, -0.5236)
+CENTER = (1.0, -0.5236)
 BEAM = standard_beam("VLA", 25.0)
 FIELD = dict(n_ant=20, extent_m=20e3)
 
 
 def _targets(n=60, seed=0, radius_arcmin=10.0, sep_arcsec=60.0):
-    ra, dec = random_positions(n, 1, np.array([CENTRE]), np.array([np.radians(radius_arcmin / 60)]),
+    ra, dec = random_positions(n, 1, np.array([CENTER]), np.array([np.radians(radius_arcmin / 60)]),
                                avoid_ra=np.zeros(0), avoid_dec=np.zeros(0),
                                min_separation=np.radians(sep_arcsec / 3600),
                                rng=np.random.default_rng(seed))
@@ -29,10 +29,10 @@ def _targets(n=60, seed=0, radius_arcmin=10.0, sep_arcsec=60.0):
 
 def _true_scatter(ra, dec, uvw, freq):
     """Exact std of the stacked flux over independent noise (sigma = 1, W = 1, 2 hands)."""
-    A = BEAM(angular_separation(ra, dec, *CENTRE)[:, None], freq[None, :])
+    A = BEAM(angular_separation(ra, dec, *CENTER)[:, None], freq[None, :])
     from _fit_helpers import lmn
 
-    l, m, n1 = lmn(ra, dec, *CENTRE)
+    l, m, n1 = lmn(ra, dec, *CENTER)
     P = np.zeros(uvw.shape[:2] + (freq.size,), complex)
     for k in range(ra.size):
         d = uvw[..., 0] * l[k] + uvw[..., 1] * m[k] + uvw[..., 2] * n1[k]
@@ -47,7 +47,7 @@ def test_estimates_match_true_scatter():
     ds0, uvw, freq = noise_field(0, **FIELD)
     truth, A = _true_scatter(ra, dec, uvw, freq)
     # the exact formula agrees with the scatter over independent simulations
-    sims = [stack_flux(ds.VISIBILITY.values, ds.WEIGHT.values, uvw, freq, ra, dec, CENTRE, 1 / A)
+    sims = [stack_flux(ds.VISIBILITY.values, ds.WEIGHT.values, uvw, freq, ra, dec, CENTER, 1 / A)
             for ds in (noise_field(s, **FIELD)[0] for s in range(100, 160))]
     assert np.std(sims, ddof=1) == pytest.approx(truth, rel=0.25)
     for seed in (1, 2):
@@ -58,7 +58,7 @@ def test_estimates_match_true_scatter():
             assert res.realizations == 200 and res.values.size == 200
             assert res.noise_jy == pytest.approx(truth, rel=0.15), (method, seed)
             # the targets' own stacked flux is the reference implementation's
-            ref = stack_flux(ds.VISIBILITY.values, ds.WEIGHT.values, uvw, freq, ra, dec, CENTRE,
+            ref = stack_flux(ds.VISIBILITY.values, ds.WEIGHT.values, uvw, freq, ra, dec, CENTER,
                              1 / A)
             assert res.target_flux_jy == pytest.approx(ref, rel=1e-9, abs=1e-12)
         ana = estimate_noise(ds, pos, method="analytic", weighting="none")
@@ -75,12 +75,12 @@ def test_mc_injection_equals_injecting_into_the_data():
     vis = ds.VISIBILITY.values
     for r in range(3):
         fra, fdec = np.radians(res.positions_deg[r]).T
-        A = BEAM(angular_separation(fra, fdec, *CENTRE)[:, None], freq[None, :])
+        A = BEAM(angular_separation(fra, fdec, *CENTER)[:, None], freq[None, :])
         fake = np.zeros(vis.shape[:3], complex)
         for c in range(freq.size):
             fake[..., c] = point_sources_vis(uvw, freq[c:c + 1], fra, fdec,
-                                             res.injected_flux_jy[r] * A[:, c], CENTRE)[..., 0]
-        ref = stack_flux(vis + fake[..., None], ds.WEIGHT.values, uvw, freq, fra, fdec, CENTRE,
+                                             res.injected_flux_jy[r] * A[:, c], CENTER)[..., 0]
+        ref = stack_flux(vis + fake[..., None], ds.WEIGHT.values, uvw, freq, fra, fdec, CENTER,
                          1 / A)
         assert res.values[r] == pytest.approx(ref, rel=1e-9)
         # separations are respected
@@ -111,26 +111,26 @@ def test_engines_agree_and_fallback_is_recorded():
     bad["UVW"].values[4, 27, 0] += 0.01
     ds, bad = ds.chunk({"time": 2}), bad.chunk({"time": 2})  # three blocks
     kw = dict(method="mc", realizations=6, flux=1e-3, seed=1, profile_bins=4, uvmin="300m")
-    row = estimate_noise(ds, pos, engine="row", **kw)
+    row = estimate_noise(ds, pos, engine="numba", **kw)
     ant = estimate_noise(ds, pos, **kw)
-    assert row.extra["engine"] == "row" and "antenna_phase_error_rad" not in row.extra
+    assert row.extra["engine"] == "numba" and "antenna_phase_error_rad" not in row.extra
     assert ant.extra["engine"] == "antenna" and ant.extra["engine_blocks"] == {"antenna": 3,
-                                                                               "row": 0}
+                                                                               "numba": 0}
     scale = np.abs(row.values).max()
     np.testing.assert_allclose(ant.values, row.values, rtol=1e-9, atol=1e-9 * scale)
     np.testing.assert_allclose(ant.injected, row.injected, rtol=1e-12)
     np.testing.assert_allclose(ant.profile["values"], row.profile["values"], rtol=1e-9,
                                atol=1e-9 * np.nanmax(np.abs(row.profile["values"])))
     rnd = estimate_noise(ds, pos, method="random", realizations=6, seed=1, engine="antenna")
-    rnd_row = estimate_noise(ds, pos, method="random", realizations=6, seed=1, engine="row")
+    rnd_row = estimate_noise(ds, pos, method="random", realizations=6, seed=1, engine="numba")
     np.testing.assert_allclose(rnd.values, rnd_row.values, rtol=1e-9,
                                atol=1e-9 * np.abs(rnd_row.values).max())
     # that block falls back to the per-row kernel
     mixed = estimate_noise(bad, pos, **kw)
     assert mixed.extra["engine"] == "mixed"
-    assert mixed.extra["engine_blocks"] == {"antenna": 2, "row": 1}
+    assert mixed.extra["engine_blocks"] == {"antenna": 2, "numba": 1}
     assert "phase error" in mixed.extra["engine_fallback"]
-    np.testing.assert_allclose(mixed.values, estimate_noise(bad, pos, engine="row", **kw).values,
+    np.testing.assert_allclose(mixed.values, estimate_noise(bad, pos, engine="numba", **kw).values,
                                rtol=1e-9, atol=1e-9 * scale)
     with pytest.raises(XstackError, match="engine='antenna' is not valid"):
         estimate_noise(bad, pos, engine="antenna", **kw)
@@ -145,8 +145,8 @@ def test_mc_finds_bias_from_bright_residual():
     ra, dec = _targets(n=40, seed=4)
     pos = (np.degrees(ra), np.degrees(dec))
     _, uvw, freq = noise_field(0, **FIELD)
-    resid = point_sources_vis(uvw, freq, np.array([CENTRE[0] + 1e-4]), np.array([CENTRE[1]]),
-                              np.array([200.0]), CENTRE, **res_vis_args)
+    resid = point_sources_vis(uvw, freq, np.array([CENTER[0] + 1e-4]), np.array([CENTER[1]]),
+                              np.array([200.0]), CENTER, **res_vis_args)
     clean, _, _ = noise_field(7, **FIELD)
     dirty, _, _ = noise_field(7, extra_vis=resid, **FIELD)
     r0 = estimate_noise(clean, pos, method="mc", realizations=100, flux=flux, seed=1,
@@ -158,21 +158,21 @@ def test_mc_finds_bias_from_bright_residual():
     diff = r1.values - r0.values
     for r in range(2):
         pra, pdec = np.radians(r1.positions_deg[r]).T
-        A = BEAM(angular_separation(pra, pdec, *CENTRE)[:, None], freq[None, :])
+        A = BEAM(angular_separation(pra, pdec, *CENTER)[:, None], freq[None, :])
         ref_r = stack_flux(resid[..., None] * np.ones(2), np.ones(resid.shape + (2,)), uvw, freq,
-                           pra, pdec, CENTRE, 1 / A)
+                           pra, pdec, CENTER, 1 / A)
         assert diff[r] == pytest.approx(ref_r, rel=1e-8)
     # truth: mean over independent random position sets of the residual alone, stacked
     ref = []
     rng = np.random.default_rng(99)
-    radius = angular_separation(ra, dec, *CENTRE).max() * 1.02
+    radius = angular_separation(ra, dec, *CENTER).max() * 1.02
     sep = np.radians(r1.extra["min_separation_arcsec"] / 3600)
     for _ in range(20):
-        pra, pdec = random_positions(40, 1, np.array([CENTRE]), np.array([radius]), avoid_ra=ra,
+        pra, pdec = random_positions(40, 1, np.array([CENTER]), np.array([radius]), avoid_ra=ra,
                                      avoid_dec=dec, min_separation=sep, rng=rng)
-        A = BEAM(angular_separation(pra[0], pdec[0], *CENTRE)[:, None], freq[None, :])
+        A = BEAM(angular_separation(pra[0], pdec[0], *CENTER)[:, None], freq[None, :])
         ref.append(stack_flux(resid[..., None] * np.ones(2), np.ones(resid.shape + (2,)), uvw, freq,
-                              pra[0], pdec[0], CENTRE, 1 / A))
+                              pra[0], pdec[0], CENTER, 1 / A))
     true_bias = float(np.mean(ref))
     shift = r1.bias_jy - r0.bias_jy
     tol = 4 * (np.std(diff) / np.sqrt(diff.size) + np.std(ref) / np.sqrt(len(ref)))
@@ -220,16 +220,16 @@ def test_result_outputs(tmp_path):
 @pytest.mark.parametrize("weighting", ["pb", "none"])
 def test_target_flux_matches_uvstack_on_a_mosaic(weighting):
     """Same estimator as xstack.uvstack, also for two overlapping pointings."""
-    uvstack = pytest.importorskip("xstack.uvstack.stack").uvstack
+    stack_uv = pytest.importorskip("xstack.uvstack.stack").stack_uv
     ra, dec = _targets(n=12, radius_arcmin=12.0, sep_arcsec=30.0)
     parts = {}
     for i, dra in enumerate((0.0, np.radians(8 / 60))):
-        centre = (CENTRE[0] + dra, CENTRE[1])
+        center = (CENTER[0] + dra, CENTER[1])
         ds, uvw, freq = noise_field(10 + i, n_ant=8, n_time=6, extent_m=20e3)
-        src = point_sources_vis(uvw, freq, ra, dec, 1.0, centre,
-                                atten=BEAM(angular_separation(ra, dec, *centre), 1.4e9))
+        src = point_sources_vis(uvw, freq, ra, dec, 1.0, center,
+                                atten=BEAM(angular_separation(ra, dec, *center), 1.4e9))
         ds["VISIBILITY"] = ds["VISIBILITY"] + src[..., None]
-        ds.attrs["phase_center"] = [float(centre[0]), float(centre[1])]
+        ds.attrs["phase_center"] = [float(center[0]), float(center[1])]
         ds.attrs["field_id"] = i
         parts[f"spw0_field{i}"] = ds
     from astropy.table import Table
@@ -237,9 +237,9 @@ def test_target_flux_matches_uvstack_on_a_mosaic(weighting):
     pos = Table({"ra": np.degrees(ra), "dec": np.degrees(dec)})
     import xarray as xr
 
-    # the noise stage evaluates equation 4 at channel centres: compare without uvstack's
-    # smearing correction (these data are unsmeared channel-centre visibilities)
-    ref = uvstack(xr.DataTree.from_dict(parts), pos, weighting=weighting, smearing="none")
+    # the noise stage evaluates equation 4 at channel centers: compare without uvstack's
+    # smearing correction (these data are unsmeared channel-center visibilities)
+    ref = stack_uv(xr.DataTree.from_dict(parts), pos, weighting=weighting, smearing="none")
     for method in ("analytic", "random", "bootstrap"):
         res = estimate_noise(parts, pos, method=method, realizations=4, weighting=weighting)
         assert res.target_flux_jy == pytest.approx(ref.flux_jy, rel=1e-9), method
@@ -260,15 +260,15 @@ def test_random_positions_avoid_bright_sources_and_stay_in_field():
     # inside the targets' footprint (their hull, grown by its margin; 10 targets: a warning)
     assert "convex hull of 10 targets" in res.extra["region"]
     margin = float(res.extra["region"].split("grown by ")[1].split(" arcsec")[0]) * np.pi / 648000
-    rmax = angular_separation(ra, dec, *CENTRE).max()
-    assert angular_separation(pra, pdec, *CENTRE).max() <= rmax + margin * 1.001
+    rmax = angular_separation(ra, dec, *CENTER).max()
+    assert angular_separation(pra, pdec, *CENTER).max() <= rmax + margin * 1.001
     # --region beam: the whole beam (out to the cutoff), roughly uniform in area
     res_b = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="random",
                            realizations=10, region="beam", weighting="none")
     bra, bdec = np.radians(res_b.positions_deg.reshape(-1, 2)).T
     r_cut = float(BEAM.radius_at(0.1, 1.45e9))
-    assert angular_separation(bra, bdec, *CENTRE).max() <= r_cut * (1 + 1e-9)
-    frac = np.mean(angular_separation(bra, bdec, *CENTRE) < r_cut / np.sqrt(2))
+    assert angular_separation(bra, bdec, *CENTER).max() <= r_cut * (1 + 1e-9)
+    frac = np.mean(angular_separation(bra, bdec, *CENTER) < r_cut / np.sqrt(2))
     assert 0.35 < frac < 0.65
 
 
@@ -276,11 +276,11 @@ def test_targets_beyond_the_first_null_never_enter_a_pointing():
     # with no cutoff, an Airy sidelobe (A ~ 0.018) must still not count as inside the beam
     ds, _, _ = noise_field(3)
     beam = standard_beam("VLA", 25.0, model="airy")
-    centre = tuple(float(x) for x in ds.attrs["phase_center"])
+    center = tuple(float(x) for x in ds.attrs["phase_center"])
     r_null = float(beam.first_null(float(ds["frequency"].max())))
     assert float(beam(1.3 * r_null, float(ds["frequency"].max()))) > 0.01
-    ra = np.full(3, centre[0])
-    dec = centre[1] + np.array([0.3, 1.3, 1.6]) * r_null
+    ra = np.full(3, center[0])
+    dec = center[1] + np.array([0.3, 1.3, 1.6]) * r_null
     with_sidelobes = estimate_noise(ds, (np.degrees(ra), np.degrees(dec)), method="analytic",
                                     primary_beam="airy", pb_cutoff=0.0)
     alone = estimate_noise(ds, (np.degrees(ra[:1]), np.degrees(dec[:1])), method="analytic",
@@ -295,16 +295,16 @@ def test_every_method_counts_the_positions_uvstack_uses():
     import xarray as xr
     from astropy.table import Table
 
-    from xstack.uvstack.stack import uvstack
+    from xstack.uvstack.stack import stack_uv
 
     ds, _, _ = noise_field(5)
     ra, dec = _targets(n=20, seed=2)
-    far_ra, far_dec = np.append(ra, CENTRE[0]), np.append(dec, CENTRE[1] + np.radians(3.0))
+    far_ra, far_dec = np.append(ra, CENTER[0]), np.append(dec, CENTER[1] + np.radians(3.0))
     pos_all = (np.degrees(far_ra), np.degrees(far_dec))
     counts = {m: estimate_noise(ds, pos_all, method=m, realizations=20).n_positions
               for m in ("analytic", "random", "bootstrap")}
     with pytest.warns(UserWarning, match="lie in no pointing"):
-        ref = uvstack(xr.DataTree.from_dict({"/p": ds}),
+        ref = stack_uv(xr.DataTree.from_dict({"/p": ds}),
                       Table({"ra": pos_all[0], "dec": pos_all[1]}), smearing="none")
     assert counts == {"analytic": 20, "random": 20, "bootstrap": 20} and ref.n_positions == 20
     # and the bootstrap resamples exactly the targets inside: as without the far one

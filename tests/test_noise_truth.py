@@ -1,7 +1,7 @@
 """``xstack noise`` against the brute-force truth: the scatter of the stacked flux at the
 actual targets over independent noise realisations.
 
-The truth is computed here with plain numpy, independently of ``xstack.uvstack`` and
+The truth is computed here with plain numpy, independently of ``xstack.stack_uv`` and
 ``xstack.noise``: the uv-stacked flux (paper eq. 4, pointings combined with the factors
 s_p = sum_k w_pk, as xstack documents) is linear in the visibilities, so for noise N_r
 
@@ -75,21 +75,21 @@ def with_noise(parts: dict, seed: int) -> dict:
     return out
 
 
-def box_catalog(centre: tuple[float, float], size_arcmin: float, n: int, seed: int
+def box_catalog(center: tuple[float, float], size_arcmin: float, n: int, seed: int
                 ) -> tuple[np.ndarray, np.ndarray]:
     """n targets uniform in a size x size box of the tangent plane (radians)."""
     rng = np.random.default_rng(seed)
     half = np.radians(size_arcmin / 60) / 2
-    return _unproject(rng.uniform(-half, half, n), rng.uniform(-half, half, n), *centre)
+    return _unproject(rng.uniform(-half, half, n), rng.uniform(-half, half, n), *center)
 
 
-def disc_catalog(centre: tuple[float, float], radius_arcmin: float, n: int, seed: int
+def disc_catalog(center: tuple[float, float], radius_arcmin: float, n: int, seed: int
                  ) -> tuple[np.ndarray, np.ndarray]:
     """n targets uniform in a disc of the tangent plane (radians)."""
     rng = np.random.default_rng(seed)
     r = np.radians(radius_arcmin / 60) * np.sqrt(rng.uniform(size=n))
     phi = rng.uniform(0, 2 * np.pi, n)
-    return _unproject(r * np.sin(phi), r * np.cos(phi), *centre)
+    return _unproject(r * np.sin(phi), r * np.cos(phi), *center)
 
 
 def _unproject(l, m, ra0, dec0):
@@ -242,9 +242,9 @@ def vla():
     types 3-6), the brute-force truth for weighting none and pb, and one data set."""
     parts = load_geometry(vla_scene(), 0.003)
     ds = next(iter(parts.values()))
-    centre = tuple(float(x) for x in ds.attrs["phase_center"])
-    ra, dec = box_catalog(centre, 30.0, 300, seed=3)
-    return {"parts": parts, "ra": ra, "dec": dec, "centre": centre,
+    center = tuple(float(x) for x in ds.attrs["phase_center"])
+    ra, dec = box_catalog(center, 30.0, 300, seed=3)
+    return {"parts": parts, "ra": ra, "dec": dec, "center": center,
             "data": with_noise(parts, seed=7), "truth": {}}
 
 
@@ -299,19 +299,19 @@ def test_box_catalog_every_method_matches_the_truth(vla, weighting):
 def test_disc_catalog_and_alma_mosaic_match_the_truth(vla):
     """A disc catalog on the VLA pointing (what the old rule was made for) and 50 targets
     in the paper-8 ALMA mosaic box (22 pointings; random positions inside the hull)."""
-    ra, dec = disc_catalog(vla["centre"], 15.0, 300, seed=4)
+    ra, dec = disc_catalog(vla["center"], 15.0, 300, seed=4)
     pos = (np.degrees(ra), np.degrees(dec))
     tr = brute_force_truth(vla["parts"], ra, dec, "none", realizations=400)
     for method in ("random", "analytic"):
         res = estimate_noise(vla["data"], pos, method=method, realizations=300, seed=5,
                              weighting="none")
         _check(res, tr, f"disc {method}")
-    from xstack.sim.scene import PAPER_FIELD_CENTRE
+    from xstack.sim.scene import PAPER_FIELD_CENTER
 
     scene = alma_mosaic_scene()
     scene["spectral"]["channels"] = 10
     parts = load_geometry(scene, 0.05)
-    ra, dec = box_catalog(tuple(np.radians(PAPER_FIELD_CENTRE)), 100 / 60, 50, seed=3)
+    ra, dec = box_catalog(tuple(np.radians(PAPER_FIELD_CENTER)), 100 / 60, 50, seed=3)
     pos = (np.degrees(ra), np.degrees(dec))
     data = with_noise(parts, seed=8)
     tr = brute_force_truth(parts, ra, dec, "pb", realizations=300)

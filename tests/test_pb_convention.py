@@ -23,21 +23,21 @@ from xstack.cli import main
 from xstack.coords import angular_separation
 from xstack.fit.imfit import fit_image
 from xstack.imaging.image import make_image
-from xstack.imstack.stack import imstack
+from xstack.imstack.stack import stack_images
 from xstack.noise.estimate import estimate_noise
 from xstack.sim.presets import preset_dict
 from xstack.sim.simulate import simulate_partitions
 
 FLUX = 100e-6
 #: (east, north) arcsec offsets from the pointing: primary-beam gains ~0.97 to ~0.2 at 230 GHz,
-#: on pixel centres of the 0.2" grid (image-domain noise stacks the nearest pixel)
+#: on pixel centers of the 0.2" grid (image-domain noise stacks the nearest pixel)
 OFFSETS = [(1.4, 1.8), (5.2, 7.0), (-7.4, 9.8), (9.2, -12.2), (-10.8, -14.6)]
 
 
 def _scene(ra: float, dec: float, *, noise: bool = False) -> dict:
     d = preset_dict("paper-8")  # ALMA 230 GHz, the paper's mosaic type, as one pointing
-    ra0, dec0 = d["pointings"]["centre"]
-    d["pointings"] = {"mode": "single", "centre": [ra0, dec0]}
+    ra0, dec0 = d["pointings"]["center"]
+    d["pointings"] = {"mode": "single", "center": [ra0, dec0]}
     if not noise:
         d["effects"].pop("noise")
     d["spectral"]["channels"] = 2
@@ -50,7 +50,7 @@ def _scene(ra: float, dec: float, *, noise: bool = False) -> dict:
 
 
 def _position(dx: float, dy: float) -> tuple[float, float]:
-    ra0, dec0 = preset_dict("paper-8")["pointings"]["centre"]
+    ra0, dec0 = preset_dict("paper-8")["pointings"]["center"]
     return ra0 + dx / 3600 / np.cos(np.radians(dec0)), dec0 + dy / 3600
 
 
@@ -59,7 +59,7 @@ def images(tmp_path_factory):
     """Per source: the position, its true gain and the uncorrected / corrected image files."""
     d = tmp_path_factory.mktemp("pbconv")
     beam = standard_beam("ALMA", 12.0)
-    ra0, dec0 = preset_dict("paper-8")["pointings"]["centre"]
+    ra0, dec0 = preset_dict("paper-8")["pointings"]["center"]
     out = []
     for k, (dx, dy) in enumerate(OFFSETS):
         ra, dec = _position(dx, dy)
@@ -85,7 +85,7 @@ def test_imstack_gives_the_injected_flux_on_corrected_and_uncorrected_images(ima
     for row in images:
         fluxes, weights = [], []
         for kind in ("flat", "pbcor"):
-            res = imstack(row[kind], row["pos"], stamp_size=32, subpixel="fourier", weighting="pb")
+            res = stack_images(row[kind], row["pos"], stamp_size=32, subpixel="fourier", weighting="pb")
             fluxes.append(res.flux_jy)
             weights.append(res.weights[0, 0])
             used = res.primary_beam[0]
@@ -115,7 +115,7 @@ def test_image_fit_of_the_stack_gives_the_injected_flux(images, tmp_path):
     for k, row in enumerate(images[1::2]):
         for kind in ("flat", "pbcor"):
             out = tmp_path / f"stack{k}_{kind}.fits"
-            imstack(row[kind], row["pos"], stamp_size=48, subpixel="fourier", weighting="none",
+            stack_images(row[kind], row["pos"], stamp_size=48, subpixel="fourier", weighting="none",
                     out=out, plot=False)
             assert fits.getheader(out)["STPBCOR"] is True
             fit = fit_image(out, model="point", fit_radius_arcsec=2.0)
@@ -138,7 +138,7 @@ def test_an_image_without_the_keyword_warns_and_the_result_says_what_was_assumed
     row = images[3]  # gain ~0.35
     plain = _strip(row["flat"], tmp_path / "third_party.fits")
     with pytest.warns(UserWarning, match="XSPBCOR.*image_corrected="):
-        res = imstack(plain, row["pos"], stamp_size=32, subpixel="fourier", weighting="none")
+        res = stack_images(plain, row["pos"], stamp_size=32, subpixel="fourier", weighting="none")
     assert res.primary_beam[0]["corrected_from"] == "assumed"
     assert res.primary_beam[0]["image_corrected"] is True
     # used as is: the apparent flux (that is what "as if corrected" means for this image)
@@ -146,7 +146,7 @@ def test_an_image_without_the_keyword_warns_and_the_result_says_what_was_assumed
     # stated: divided by the telescope's beam at the pointing (TELESCOP, FREQ), no warning
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = imstack(plain, row["pos"], stamp_size=32, subpixel="fourier", weighting="none",
+        res = stack_images(plain, row["pos"], stamp_size=32, subpixel="fourier", weighting="none",
                       image_corrected=False)
     assert res.primary_beam[0]["corrected_from"] == "option"
     assert res.primary_beam[0]["beam"].startswith("model: airy")
@@ -157,7 +157,7 @@ def test_an_image_without_the_keyword_warns_and_the_result_says_what_was_assumed
     assert nres.extra["primary_beam"]["corrected_from"] == "assumed"
     # a stamp without STPBCOR (not from xstack imstack): fitted as is, with a warning
     stamp = tmp_path / "stamp.fits"
-    imstack(row["flat"], row["pos"], stamp_size=48, subpixel="fourier", weighting="none",
+    stack_images(row["flat"], row["pos"], stamp_size=48, subpixel="fourier", weighting="none",
             out=stamp, plot=False)
     with fits.open(stamp) as h:
         hdus = fits.HDUList([h[0].copy(), *(x.copy() for x in h[1:])])
@@ -170,17 +170,17 @@ def test_an_image_without_the_keyword_warns_and_the_result_says_what_was_assumed
 
 def test_explicit_options_win_over_the_header(images):
     row = images[2]  # gain ~0.5
-    # pb="none": A = 1, so the uncorrected image gives its apparent flux
-    res = imstack(row["flat"], row["pos"], stamp_size=32, subpixel="fourier", pb="none")
+    # primary_beam="none": A = 1, so the uncorrected image gives its apparent flux
+    res = stack_images(row["flat"], row["pos"], stamp_size=32, subpixel="fourier", primary_beam="none")
     assert res.primary_beam[0]["beam"] == "none (A = 1)"
     assert res.flux_jy == pytest.approx(FLUX * row["gain"], rel=0.02)
     # image_corrected=False on a corrected image: warned, and divided once more (as asked)
     with pytest.warns(UserWarning, match="XSPBCOR = T"):
-        res = imstack(row["pbcor"], row["pos"], stamp_size=32, subpixel="fourier",
+        res = stack_images(row["pbcor"], row["pos"], stamp_size=32, subpixel="fourier",
                       image_corrected=False)
     assert res.flux_jy == pytest.approx(FLUX / row["gain"], rel=0.02)
     # the old spelling pbcor=True is image_corrected=False
-    res = imstack(row["flat"], row["pos"], stamp_size=32, subpixel="fourier", pbcor=True)
+    res = stack_images(row["flat"], row["pos"], stamp_size=32, subpixel="fourier", pbcor=True)
     assert res.primary_beam[0]["corrected_from"] == "option"
     assert res.flux_jy == pytest.approx(FLUX, rel=0.02)
 
@@ -238,4 +238,4 @@ def test_write_with_pb_is_all_or_nothing(tmp_path):
     assert (tmp_path / "a.fits").read_bytes() == b"keep"
     files = res.write_with_pb(tmp_path / "a.fits", overwrite=True)
     assert fits.getheader(files["image"])["XSPBFILE"] == "a.pb.fits"
-    np.testing.assert_allclose(np.squeeze(fits.getdata(files["pb"])), res.pb, rtol=1e-6)
+    np.testing.assert_allclose(np.squeeze(fits.getdata(files["pb"])), res.primary_beam, rtol=1e-6)

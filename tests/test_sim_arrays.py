@@ -85,7 +85,7 @@ def test_uvw_is_the_standard_hour_angle_formula():
 @pytest.mark.realdata
 def test_uvw_match_real_casa_alma_ms(tmp_path):
     """The ALMA MS written by CASA's importasdm: recompute UVW from its antenna positions,
-    times and phase centre. Agreement is ~1e-4 of the baseline (we neglect annual aberration
+    times and phase center. Agreement is ~1e-4 of the baseline (we neglect annual aberration
     and UT1-UTC); the opposite baseline order would be off by 2|b|."""
     from casacore.tables import table
 

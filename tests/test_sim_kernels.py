@@ -15,7 +15,7 @@ def _uvw(rng, n=200, scale=3000.0):
     return rng.normal(scale=scale, size=(n, 3))
 
 
-def test_point_source_at_phase_centre_is_constant(rng):
+def test_point_source_at_phase_center_is_constant(rng):
     uvw = _uvw(rng)
     freq = np.linspace(1.3e9, 1.5e9, 7)
     with kernels.record_steps() as steps:
@@ -139,7 +139,7 @@ def test_antenna_kernel_equals_baseline_kernel(rng, uniform):
             else np.sort(rng.uniform(1.3e9, 1.5e9, 12))[::-1].copy())
     l = rng.uniform(-5e-3, 5e-3, nsrc)
     m = rng.uniform(-5e-3, 5e-3, nsrc)
-    l[0] = m[0] = 0.0  # one at the phase centre
+    l[0] = m[0] = 0.0  # one at the phase center
     nm1 = -(l**2 + m**2) / (1 + np.sqrt(1 - l**2 - m**2))
     flux = rng.uniform(0, 1, nsrc)
     att = rng.uniform(0.1, 1, (nsrc, 12))

@@ -18,10 +18,10 @@ scene = {
     "array": {"config": "vla.a"},
     "observation": {"date": "2014-01-01", "hour_angle": [-6, 6], "integration": 10.0,
                     "time_per_pointing": 10.0 * n_int},
-    "spectral": {"centre": 1.4e9, "bandwidth": 64e6, "channels": 32,
+    "spectral": {"center": 1.4e9, "bandwidth": 64e6, "channels": 32,
                  "polarizations": ["RR", "LL"]},
     "pointings": {"mode": "single"},
-    "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.01}},
+    "effects": {"primary_beam": "auto", "w_term": True, "noise": {"sigma": 0.01}},
     "populations": [{"name": "t", "count": 50, "flux": {"kind": "fixed", "value": "1mJy"},
                      "positions": {"kind": "box", "size_arcsec": [600, 600]}}],
 }

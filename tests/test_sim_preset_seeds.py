@@ -18,39 +18,39 @@ from xstack.sim.simulate import _plan
 ARCSEC = np.pi / 180 / 3600
 
 
-def _offsets_arcsec(cat, centre):
-    l, m, _, _ = radec_to_lmn(np.radians(cat["ra"]), np.radians(cat["dec"]), *centre)
+def _offsets_arcsec(cat, center):
+    l, m, _, _ = radec_to_lmn(np.radians(cat["ra"]), np.radians(cat["dec"]), *center)
     return l / ARCSEC, m / ARCSEC
 
 
 @pytest.mark.parametrize("preset", ["paper-8", "paper-10"])
 def test_every_seed_simulates(preset):
     scene = preset_scene(preset, scale=0.05)
-    centre = tuple(np.radians(scene.pointings.centre))
+    center = tuple(np.radians(scene.pointings.center))
     for seed in range(20):
         plan = _plan(scene, seed, 1.0)
         for name, cat in plan.catalogs.items():
             assert len(cat) == next(q.count for q in scene.populations if q.name == name)
-            x, y = _offsets_arcsec(cat, centre)
+            x, y = _offsets_arcsec(cat, center)
             # still inside the 100" box of the paper
             assert np.all(np.abs(x) <= 50 + 1e-6) and np.all(np.abs(y) <= 50 + 1e-6)
             # and within the main lobe of some pointing: ALMA 12 m at 230 GHz has its 10 %
-            # point near 0.82 x FWHM (FWHM ~ 1.13 lambda/D ~ 25"): well inside 30" of a centre
+            # point near 0.82 x FWHM (FWHM ~ 1.13 lambda/D ~ 25"): well inside 30" of a center
             sep = np.hypot(*[(np.asarray(a)[:, None] - np.asarray(b)[None, :])
                              for a, b in zip((x, y), _offsets_arcsec(
                                  {"ra": np.degrees(plan.pointings[:, 0]),
-                                  "dec": np.degrees(plan.pointings[:, 1])}, centre))])
+                                  "dec": np.degrees(plan.pointings[:, 1])}, center))])
             assert np.all(sep.min(axis=1) < 30.0)
 
 
 def test_sources_fill_the_covered_part_of_the_box():
     """Uniform in box ∩ coverage: the covered area's share of sources matches its share of area."""
     scene = preset_scene("paper-10", scale=1.0)
-    centre = tuple(np.radians(scene.pointings.centre))
+    center = tuple(np.radians(scene.pointings.center))
     xs, ys = [], []
     for seed in range(4):
         cat = _plan(scene, seed, 1.0).catalogs["bright"]
-        x, y = _offsets_arcsec(cat, centre)
+        x, y = _offsets_arcsec(cat, center)
         xs.append(x)
         ys.append(y)
     x, y = np.concatenate(xs), np.concatenate(ys)
@@ -68,19 +68,19 @@ def test_a_covered_first_draw_keeps_its_sources():
     from xstack.sim.simulate import _seed_rng
 
     scene = preset_scene("paper-8", scale=0.05)
-    centre = tuple(np.radians(scene.pointings.centre))
+    center = tuple(np.radians(scene.pointings.center))
     checked = 0
     for seed in range(10):
         plan = _plan(scene, seed, 1.0)
         px, py = _offsets_arcsec({"ra": np.degrees(plan.pointings[:, 0]),
-                                  "dec": np.degrees(plan.pointings[:, 1])}, centre)
+                                  "dec": np.degrees(plan.pointings[:, 1])}, center)
         for i, q in enumerate(scene.populations):
             rng = _seed_rng(seed, 1, i)     # the population's generator, drawn as a plain box
             x = rng.uniform(-50, 50, q.count)
             y = rng.uniform(-50, 50, q.count)
             if np.hypot(x[:, None] - px, y[:, None] - py).min(axis=1).max() > 20:
                 continue                    # some source needed a redraw
-            ra, dec = lm_to_radec(x * ARCSEC, y * ARCSEC, *centre)
+            ra, dec = lm_to_radec(x * ARCSEC, y * ARCSEC, *center)
             np.testing.assert_allclose(np.radians(plan.catalogs[q.name]["ra"]), ra, atol=1e-12)
             np.testing.assert_allclose(np.radians(plan.catalogs[q.name]["dec"]), dec, atol=1e-12)
             checked += 1

@@ -12,9 +12,9 @@ from xstack.sim.presets import PRESETS, preset_scene
 from xstack.sim.simulate import simulate, simulate_partitions
 
 SCALE = 0.05
-VLA = {"antennas": 27, "channels": 10, "centre": 1.4e9, "bandwidth": 250e6, "pols": ["RR", "LL"],
+VLA = {"antennas": 27, "channels": 10, "center": 1.4e9, "bandwidth": 250e6, "pols": ["RR", "LL"],
        "integration": 10.0, "time": 33840.0}
-ALMA = {"antennas": 32, "channels": 100, "centre": 230e9, "bandwidth": 4e9,
+ALMA = {"antennas": 32, "channels": 100, "center": 230e9, "bandwidth": 4e9,
         "pols": ["XX", "YY"], "integration": 6.0, "time": 360.0}
 
 #: (setup, fields, bright count, bright kind, bright extended, target count, target kind,
@@ -97,7 +97,7 @@ def test_preset_matches_table1(name):
     setup, fields, nb, kb, eb, nt, kt, et, size = TABLE1[n]
     full = preset_scene(name)
     assert full.spectral.channels == setup["channels"]
-    assert full.spectral.centre == setup["centre"] and full.spectral.bandwidth == setup["bandwidth"]
+    assert full.spectral.center == setup["center"] and full.spectral.bandwidth == setup["bandwidth"]
     assert full.observation.integration == setup["integration"]
     assert full.observation.time_per_pointing == setup["time"]
     pops = {p.name: p for p in full.populations}
@@ -151,7 +151,7 @@ def test_every_preset_simulates_and_writes(name, tmp_path):
 
 
 @pytest.mark.parametrize("name, span_h", [("paper-1", 9.4), ("paper-8", 2.2)])
-def test_observations_are_centred_on_transit(name, span_h):
+def test_observations_are_centered_on_transit(name, span_h):
     from xstack.sim import arrays
 
     parts, _ = simulate_partitions(preset_scene(name), scale=1.0)

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from xstack.schema import iter_partitions, open_store
-from xstack.sim.scene import PAPER_FIELD_CENTRE
+from xstack.sim.scene import PAPER_FIELD_CENTER
 from xstack.sim.simulate import simulate
 
 export = pytest.importorskip("xstack.io.export")
 convert = pytest.importorskip("xstack.io.convert")
 
-RA0, DEC0 = PAPER_FIELD_CENTRE
+RA0, DEC0 = PAPER_FIELD_CENTER
 
 
 def test_simulate_export_convert_identical(tmp_path):
@@ -20,10 +20,10 @@ def test_simulate_export_convert_identical(tmp_path):
         "name": "roundtrip",
         "array": {"config": "alma.cycle1.2"},
         "observation": {"hour_angle": [-1.0, 1.0], "integration": 6.0, "time_per_pointing": 18.0},
-        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 5,
+        "spectral": {"center": 230e9, "bandwidth": 4e9, "channels": 5,
                      "polarizations": ["XX", "YY"]},
         "pointings": {"mode": "list", "positions": [[RA0, DEC0], [RA0, DEC0 + 20 / 3600]]},
-        "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.2},
+        "effects": {"primary_beam": "auto", "w_term": True, "noise": {"sigma": 0.2},
                     "flagging": {"random_fraction": 0.05}},
         "populations": [{"name": "targets", "count": 4, "flux": {"kind": "fixed", "value": 0.01},
                          "positions": {"kind": "disc", "radius_arcsec": 12.0}}],
@@ -34,7 +34,7 @@ def test_simulate_export_convert_identical(tmp_path):
     a = dict(iter_partitions(open_store(res.store)))
     b = dict(iter_partitions(open_store(back)))
     assert len(a) == len(b) == 2
-    # match partitions by phase centre (names may differ)
+    # match partitions by phase center (names may differ)
     for da in a.values():
         (db,) = [d for d in b.values() if np.allclose(d.attrs["phase_center"],
                                                      da.attrs["phase_center"], atol=1e-12)]
@@ -58,8 +58,8 @@ def test_imaging_puts_simulated_source_at_its_catalog_position(tmp_path):
     scene = {
         "name": "img", "array": {"config": "alma.cycle1.2"},
         "observation": {"hour_angle": [-1, 1], "integration": 6.0, "time_per_pointing": 60.0},
-        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 4, "polarizations": ["XX", "YY"]},
-        "pointings": {"mode": "single", "centre": [RA0, DEC0]},
+        "spectral": {"center": 230e9, "bandwidth": 4e9, "channels": 4, "polarizations": ["XX", "YY"]},
+        "pointings": {"mode": "single", "center": [RA0, DEC0]},
         "populations": [{"name": "s", "count": 1, "flux": {"kind": "fixed", "value": 1.0},
                          "positions": {"kind": "list", "ra": [ra], "dec": [dec]}}],
     }
@@ -83,13 +83,13 @@ def test_uvstack_recovers_the_injected_mosaic_flux(tmp_path):
     scene = {
         "name": "stack", "array": {"config": "alma.cycle1.2"},
         "observation": {"hour_angle": [-1, 1], "integration": 6.0, "time_per_pointing": 12.0},
-        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 4, "polarizations": ["XX", "YY"]},
-        "pointings": {"mode": "hexagonal", "centre": [RA0, DEC0], "size_arcsec": [40.0, 40.0],
+        "spectral": {"center": 230e9, "bandwidth": 4e9, "channels": 4, "polarizations": ["XX", "YY"]},
+        "pointings": {"mode": "hexagonal", "center": [RA0, DEC0], "size_arcsec": [40.0, 40.0],
                       "spacing_arcsec": 20.0},
-        "effects": {"primary_beam": "standard", "w_term": True},
+        "effects": {"primary_beam": "auto", "w_term": True},
         "populations": [{"name": "targets", "count": 1, "flux": {"kind": "fixed", "value": 2e-3},
                          "positions": {"kind": "box", "size_arcsec": [20.0, 20.0]}}],
     }
     res = simulate(scene, tmp_path / "m.zarr", seed=2)
-    out = stack.uvstack(res.store, res.catalog_paths["targets"], weighting="pb")
+    out = stack.stack_uv(res.store, res.catalog_paths["targets"], weighting="pb")
     assert out.flux_jy == pytest.approx(2e-3, rel=1e-3)

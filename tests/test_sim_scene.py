@@ -20,15 +20,15 @@ integration = 6.0
 time_per_pointing = 12.0
 hour_angle = [-1.0, 1.0]
 [spectral]
-centre = 230e9
+center = 230e9
 bandwidth = 2e9
 channels = 4
 polarizations = ["XX", "YY"]
 [pointings]
 mode = "single"
-centre = ["3h49m10.99s", "-30d00m00s"]
+center = ["3h49m10.99s", "-30d00m00s"]
 [effects]
-primary_beam = "standard"
+primary_beam = "auto"
 noise = { sigma = 0.5 }
 [[populations]]
 name = "targets"
@@ -59,7 +59,7 @@ def test_toml_scene_loads_and_round_trips(tmp_path):
     (("noise = { sigma = 0.5 }", "noise = { sigma = 0.5, sefd = 3 }"), "effects.noise"),
     (("[effects]", "[efects]"), "efects"),
     # wrong types: each names the field
-    (("primary_beam = \"standard\"", "primary_beam = \"standard\"\nw_term = \"yes\""),
+    (("primary_beam = \"auto\"", "primary_beam = \"auto\"\nw_term = \"yes\""),
      "effects.w_term"),
     (("hour_angle = [-1.0, 1.0]", "hour_angle = 3"), "observation.hour_angle"),
     (("polarizations = [\"XX\", \"YY\"]", "polarizations = \"XX\""), "spectral.polarizations"),
@@ -106,9 +106,9 @@ def test_scene_toml_round_trip_covers_every_setting(tmp_path):
                         antennas=["A", "C"]),
         observation=Observation(date="2015-03-02", hour_angle=[-2.5, 3.0], integration=2.0,
                                 time_per_pointing=20.0),
-        spectral=Spectral(centre=345e9, bandwidth=1.875e9, channels=7,
+        spectral=Spectral(center=345e9, bandwidth=1.875e9, channels=7,
                           polarizations=["XX", "XY", "YX", "YY"]),
-        pointings=Pointings(mode="rectangular", centre=["3h49m10.99s", "-30d00m00s"],
+        pointings=Pointings(mode="rectangular", center=["3h49m10.99s", "-30d00m00s"],
                             size_arcsec=[40.0, 20.0], spacing_arcsec=10.0),
         effects=Effects(primary_beam="gaussian", pb_cutoff=0.05, w_term=True,
                         noise=NoiseSpec(tsys=75.0, aperture_efficiency=0.7, efficiency=0.9),
@@ -116,7 +116,7 @@ def test_scene_toml_round_trip_covers_every_setting(tmp_path):
         populations=[
             Population("tab", 30, FluxDistribution("table", s_min=1e-4, s_max=1e-2,
                                                    flux=[1e-4, 1e-3, 1e-2], dnds=[1e6, 1e3, 1.0]),
-                       Positions("disc", radius_arcsec=8.0, centre=[57.29, -30.001]),
+                       Positions("disc", radius_arcsec=8.0, center=[57.29, -30.001]),
                        Shape("gaussian", [0.2, 0.9]), keep_count_below=5),
             Population("sch", 12, FluxDistribution("schechter", alpha=-1.6, s_star=1.7e-6,
                                                    s_min=4e-7, s_max=1.7e-5),
@@ -206,14 +206,14 @@ def test_tabulated_counts_sample_their_distribution():
 
 
 def test_rectangular_mosaic_layout():
-    """A 40" x 20" rectangular grid at 10" spacing: 5 x 3 pointings, 10" apart, centred."""
+    """A 40" x 20" rectangular grid at 10" spacing: 5 x 3 pointings, 10" apart, centered."""
     from xstack.coords import angular_separation, radec_to_lmn
     from xstack.sim.simulate import simulate_partitions
 
     scene = {"array": {"config": "alma.cycle1.2"},
              "observation": {"integration": 6.0, "time_per_pointing": 6.0, "hour_angle": [-1, 1]},
-             "spectral": {"centre": 230e9, "bandwidth": 1e9, "channels": 1, "polarizations": ["XX"]},
-             "pointings": {"mode": "rectangular", "centre": [57.3, -30.0], "size_arcsec": [40, 20],
+             "spectral": {"center": 230e9, "bandwidth": 1e9, "channels": 1, "polarizations": ["XX"]},
+             "pointings": {"mode": "rectangular", "center": [57.3, -30.0], "size_arcsec": [40, 20],
                            "spacing_arcsec": 10.0}}
     parts, _ = simulate_partitions(scene)
     pc = np.array([ds.attrs["phase_center"] for ds in parts.values()])

@@ -17,10 +17,10 @@ from xstack.coords import radec_to_lmn
 from xstack.errors import XstackError
 from xstack.schema import open_store
 from xstack.sim import kernels
-from xstack.sim.scene import PAPER_FIELD_CENTRE
+from xstack.sim.scene import PAPER_FIELD_CENTER
 from xstack.sim.simulate import simulate, simulate_partitions
 
-RA0, DEC0 = PAPER_FIELD_CENTRE
+RA0, DEC0 = PAPER_FIELD_CENTER
 
 
 def _scene(populations, **kw):
@@ -28,9 +28,9 @@ def _scene(populations, **kw):
         "name": "t",
         "array": {"config": "alma.cycle1.2"},
         "observation": {"hour_angle": [-1.0, 1.0], "integration": 6.0, "time_per_pointing": 30.0},
-        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 8,
+        "spectral": {"center": 230e9, "bandwidth": 4e9, "channels": 8,
                      "polarizations": ["XX", "XY", "YX", "YY"]},
-        "pointings": {"mode": "single", "centre": [RA0, DEC0]},
+        "pointings": {"mode": "single", "center": [RA0, DEC0]},
         "effects": {},
         "visibility_dtype": "complex128",
         "populations": populations,
@@ -53,7 +53,7 @@ def _first(parts):
     return next(iter(parts.values()))
 
 
-def test_point_source_at_phase_centre_is_constant_and_cheap():
+def test_point_source_at_phase_center_is_constant_and_cheap():
     scene = _scene([_pop("c", [RA0], [DEC0], 2e-3)])
     with kernels.record_steps() as steps:
         parts, cats = simulate_partitions(scene, seed=1)
@@ -70,7 +70,7 @@ def test_offset_sources_match_independent_eq1():
     ra = RA0 + rng.uniform(-8, 8, 6) / 3600 / math.cos(math.radians(DEC0))
     dec = DEC0 + rng.uniform(-8, 8, 6) / 3600
     scene = _scene([_pop("a", ra[:3], dec[:3], 1e-3), _pop("b", ra[3:], dec[3:], 3e-3, 1.5)],
-                   effects={"w_term": True, "primary_beam": "standard"})
+                   effects={"w_term": True, "primary_beam": "auto"})
     with kernels.record_steps() as steps:
         parts, cats = simulate_partitions(scene)
         ds = _first(parts).compute()
@@ -100,7 +100,7 @@ def test_primary_beam_attenuation_at_offsets_and_channels():
     decs = DEC0 + offs / 3600
     scene = _scene([_pop("s", [RA0], [DEC0], 1.0)],
                    pointings={"mode": "list", "positions": [[RA0, d] for d in decs]},
-                   effects={"primary_beam": "standard"})
+                   effects={"primary_beam": "auto"})
     parts, _ = simulate_partitions(scene)
     beam = standard_beam("ALMA", 12.0)
     assert len(parts) == 4
@@ -180,7 +180,7 @@ def test_same_seed_same_bits_whatever_the_chunking(chunk, bl_chunk):
                                                  "s_min": 1e-4, "s_max": 1e-2},
              "positions": {"kind": "disc", "radius_arcsec": 15.0}}]
     eff = {"noise": {"sigma": 0.1}, "flagging": {"random_fraction": 0.1}, "w_term": True,
-           "primary_beam": "standard"}
+           "primary_beam": "auto"}
     ref = _first(simulate_partitions(_scene(pops, effects=eff), seed=5)[0]).compute(
         scheduler="synchronous")
     other = _scene(pops, effects=eff, time_chunk=chunk, baseline_chunk=bl_chunk)
@@ -256,7 +256,7 @@ def test_sources_outside_every_pointing_are_refused():
 
 def test_gaussian_source_matches_numerical_fourier_transform():
     """Independent truth for an extended source: the visibilities of a circular Gaussian
-    (FWHM 2") 3.6" from the phase centre equal a direct numerical Fourier sum over its
+    (FWHM 2") 3.6" from the phase center equal a direct numerical Fourier sum over its
     brightness distribution sampled in the (l, m) plane (no analytic transform used)."""
     ra = RA0 + 3.0 / 3600 / math.cos(math.radians(DEC0))
     dec = DEC0 + 2.0 / 3600
@@ -324,7 +324,7 @@ def _trace_rng(monkeypatch):
 
 
 @pytest.mark.parametrize("effects, random_expected", [
-    ({"w_term": True, "primary_beam": "standard", "flagging": {"shadowing": True}}, False),
+    ({"w_term": True, "primary_beam": "auto", "flagging": {"shadowing": True}}, False),
     ({"noise": {"sigma": 0.1}}, True),
     ({"flagging": {"random_fraction": 0.1}}, True),
 ])
@@ -349,7 +349,7 @@ def test_same_bits_on_a_distributed_cluster(tmp_path):
              "positions": {"kind": "disc", "radius_arcsec": 15.0},
              "shape": {"kind": "gaussian", "fwhm_arcsec": [0.5, 2.0]}}]
     eff = {"noise": {"sigma": 0.1}, "flagging": {"random_fraction": 0.1}, "w_term": True,
-           "primary_beam": "standard"}
+           "primary_beam": "auto"}
     ref = _first(simulate_partitions(_scene(pops, effects=eff), seed=8)[0]).compute(
         scheduler="synchronous")
     scene = _scene(pops, effects=eff, time_chunk=2, baseline_chunk=70)

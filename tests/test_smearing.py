@@ -24,7 +24,7 @@ from xstack.sim.scene import load_scene, scene_to_toml
 from xstack.sim.simulate import simulate_partitions
 from xstack.smearing import EARTH_ROTATION_RATE, delay_rates, smearing_factors
 from xstack.uvstack import smearing as usm
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 C = 299_792_458.0
 ARCMIN = math.pi / (180 * 60)
@@ -42,7 +42,7 @@ def _lmn(ra, dec, ra0=RA0, dec0=DEC0):
 
 
 def _offsets_deg(offsets_arcmin):
-    """(ra, dec) degrees of tangent-plane offsets (arcmin) from the field centre."""
+    """(ra, dec) degrees of tangent-plane offsets (arcmin) from the field center."""
     from xstack.coords import lm_to_radec
 
     x = np.array([o[0] for o in offsets_arcmin]) * ARCMIN
@@ -90,7 +90,7 @@ def test_bandwidth_factor_is_the_channel_average():
     for c in range(2):
         nu = freq[c] + width[c] * x
         avg = np.exp(2j * np.pi * d[:, None] * nu[None, :] / C).mean(axis=1)
-        ref = avg * np.exp(-2j * np.pi * d * freq[c] / C)  # the phase at the centre removed
+        ref = avg * np.exp(-2j * np.pi * d * freq[c] / C)  # the phase at the center removed
         assert np.abs(ref.imag).max() < 1e-6
         np.testing.assert_allclose(f_b[:, c], ref.real, atol=1e-6)
     assert f_b.min() < 0.9  # a real effect
@@ -113,7 +113,7 @@ def _bf_scene(kt: int, kf: int, bandwidth: bool, time: bool) -> dict:
         "array": {"config": "vla.a", "antennas": ["W72", "E72", "N72", "W16", "E40"]},
         "observation": {"integration": 6.0 / kt, "time_per_pointing": 12.0,
                         "hour_angle": [-4, 4]},
-        "spectral": {"centre": 1.4e9, "bandwidth": 2e6, "channels": 2 * kf,
+        "spectral": {"center": 1.4e9, "bandwidth": 2e6, "channels": 2 * kf,
                      "polarizations": ["RR", "LL"]},
         "effects": {"primary_beam": "none", "w_term": True, "bandwidth_smearing": bandwidth,
                     "time_smearing": time},
@@ -218,9 +218,9 @@ def _wide_scene(smear: bool) -> dict:
         "array": {"config": "vla.a"},
         "observation": {"integration": 15.0, "time_per_pointing": 900.0,
                         "hour_angle": [-4, 4]},
-        "spectral": {"centre": 1.4e9, "bandwidth": 8e6, "channels": 4,
+        "spectral": {"center": 1.4e9, "bandwidth": 8e6, "channels": 4,
                      "polarizations": ["RR", "LL"]},
-        "effects": {"primary_beam": "standard", "w_term": True, "bandwidth_smearing": smear,
+        "effects": {"primary_beam": "auto", "w_term": True, "bandwidth_smearing": smear,
                     "time_smearing": smear},
         "populations": [{"name": "t", "count": 4, "flux": {"kind": "fixed", "value": 1.0},
                          "positions": {"kind": "list", "ra": ra, "dec": dec}}],
@@ -256,7 +256,7 @@ def _plain_loss(ds: xr.Dataset, cat) -> np.ndarray:
 def _stack(tree, cat, **kw):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = uvstack(tree, cat, weighting="none", **kw)
+        res = stack_uv(tree, cat, weighting="none", **kw)
     return res, [str(w.message) for w in caught]
 
 
@@ -347,7 +347,7 @@ def test_auto_treats_real_and_old_simulated_data_right():
 def test_uvstack_rejects_bad_smearing_option(wide):
     tree, cat = wide[False]
     with pytest.raises(XstackError, match="unknown smearing 'bogus'"):
-        uvstack(tree, cat, smearing="bogus")
+        stack_uv(tree, cat, smearing="bogus")
 
 
 def test_cli_smearing_option(tmp_path, capsys):

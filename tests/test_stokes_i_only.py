@@ -33,8 +33,8 @@ def test_uvstack_of_a_stokes_i_store():
     ds = make_partition(pols=("I",), seed=3, dtype=np.complex128)
     ra0, dec0 = np.degrees(ds.attrs["phase_center"])
     ra, dec = ra0 + 2e-4, dec0 - 1e-4
-    # smearing="none": the plain equation 4 at channel centres, as the numpy truth
-    res = xstack.uvstack(xstack_tree(ds), Table({"ra": [ra], "dec": [dec]}), weighting="none",
+    # smearing="none": the plain equation 4 at channel centers, as the numpy truth
+    res = xstack.stack_uv(xstack_tree(ds), Table({"ra": [ra], "dec": [dec]}), weighting="none",
                          primary_beam="none", smearing="none")
     assert res.flux_jy == pytest.approx(_numpy_stack(ds, ra, dec), rel=1e-9, abs=1e-12)
     assert res.n_visibilities == int((~ds["FLAG"].values).sum())

@@ -9,7 +9,7 @@ precision, ``...`` matches anything), so neither the commands nor the quoted out
 drift from the code. The key numbers are then checked against the truth of the scene file
 itself (60 targets of 20 uJy, sigma = 10 mJy per visibility part, the VLA A array): the
 stacked fluxes within 5 sigma of 20 uJy, the image rms and the stack's error bar against
-the radiometer prediction, the visibility and row counts, the phase centre of the stack at
+the radiometer prediction, the visibility and row counts, the phase center of the stack at
 the targets' mean position.
 
 The block after ``<!-- needs the casa extra -->`` (CASA's listobs and tclean on the export)
@@ -297,7 +297,7 @@ def test_tutorial_runs_and_recovers_the_injected_flux(tutorial):
 @pytest.mark.casa
 @pytest.mark.timeout(1200)
 def test_tutorial_casa_step(tutorial):
-    """CASA reads the export, and the centre of its dirty image is the stacked flux."""
+    """CASA reads the export, and the center of its dirty image is the stacked flux."""
     for module in ("casatools", "casatasks", "casadata"):
         if importlib.util.find_spec(module) is None:
             pytest.skip(f"{module} is not installed (pip install -e '.[test,casa]')")
@@ -308,7 +308,7 @@ def test_tutorial_casa_step(tutorial):
     env = dict(_env(), HOME=str(home))
     run_block(casa_blocks[0], tutorial.workdir, env)
     out = casa_blocks[0].stdout
-    m = re.search(rf"centre pixel: ({NUMBER}) uJy/beam", out)
+    m = re.search(rf"center pixel: ({NUMBER}) uJy/beam", out)
     assert m, out
     casa_flux = _value(m.group(1)) * 1e-6
     uv_flux, uv_err = _jy(tutorial.output("xstack uvstack"),

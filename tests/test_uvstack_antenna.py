@@ -14,7 +14,7 @@ from xstack.coords import lm_to_radec
 from xstack.errors import XstackError
 from xstack.uvstack import kernels as K
 from xstack.uvstack.reference import reference_uvstack
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 
 def _random_block(rng, n_time=6, ids=(0, 2, 3, 5, 8, 9, 13), extent=5e3):
@@ -112,7 +112,7 @@ def test_uvstack_antenna_equals_reference(partition, chunks, write, tmp_path):
     ds, cat, ref = partition
     data = ds if chunks is None else ds.chunk(chunks)
     out = tmp_path / "o.zarr" if write else None
-    res = uvstack(xr.DataTree.from_dict({"p": data}), cat, engine="antenna", out=out)
+    res = stack_uv(xr.DataTree.from_dict({"p": data}), cat, engine="antenna", out=out)
     assert res.options["engine"] == "antenna"
     assert res.options["engine_rows"] == {"antenna": 10 * 28}
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
@@ -120,7 +120,7 @@ def test_uvstack_antenna_equals_reference(partition, chunks, write, tmp_path):
     ok = np.isfinite(ref["stacked"]["p"])
     np.testing.assert_allclose(res.stacked["p"]["VISIBILITY"].values[ok],
                                ref["stacked"]["p"][ok], rtol=0, atol=1e-9)
-    numba = uvstack(xr.DataTree.from_dict({"p": data}), cat, engine="numba", out=out and
+    numba = stack_uv(xr.DataTree.from_dict({"p": data}), cat, engine="numba", out=out and
                     tmp_path / "n.zarr")
     assert numba.options["engine"] == "numba"
     assert res.flux_jy == pytest.approx(numba.flux_jy, rel=1e-12)
@@ -132,24 +132,24 @@ def test_auto_falls_back_per_chunk_and_records_mixed(partition):
     uvw[:5, 9] += [0.01, 0.0, 0.0]  # 1 cm off in the first 5 integrations: not factorisable
     bad = ds.assign(UVW=(ds["UVW"].dims, uvw))
     with dask.config.set(scheduler="synchronous"):
-        res = uvstack(xr.DataTree.from_dict({"p": bad.chunk({"time": 5})}), cat)
+        res = stack_uv(xr.DataTree.from_dict({"p": bad.chunk({"time": 5})}), cat)
         assert res.options["engine"] == "mixed"
         assert res.options["engine_rows"] == {"numba": 5 * 28, "antenna": 5 * 28}
-        per_row = uvstack(xr.DataTree.from_dict({"p": bad.chunk({"time": 5})}), cat,
+        per_row = stack_uv(xr.DataTree.from_dict({"p": bad.chunk({"time": 5})}), cat,
                           engine="numba")
         assert res.flux_jy == pytest.approx(per_row.flux_jy, rel=1e-12)
-        every = uvstack(xr.DataTree.from_dict({"p": bad}), cat)  # one chunk
+        every = stack_uv(xr.DataTree.from_dict({"p": bad}), cat)  # one chunk
         assert every.options["engine"] == "numba"
         with pytest.raises(XstackError, match="engine='antenna' is not valid.*phase error"):
-            uvstack(xr.DataTree.from_dict({"p": bad}), cat, engine="antenna")
+            stack_uv(xr.DataTree.from_dict({"p": bad}), cat, engine="antenna")
         # a looser tolerance accepts the factorisation
-        loose = uvstack(xr.DataTree.from_dict({"p": bad}), cat, antenna_tol_rad=10.0)
+        loose = stack_uv(xr.DataTree.from_dict({"p": bad}), cat, antenna_tol_rad=10.0)
         assert loose.options["engine"] == "antenna"
 
 
 def test_numpy_engine_records_itself(partition, tmp_path):
     ds, cat, ref = partition
-    res = uvstack(xr.DataTree.from_dict({"p": ds.chunk({"time": 5})}), cat, engine="numpy",
+    res = stack_uv(xr.DataTree.from_dict({"p": ds.chunk({"time": 5})}), cat, engine="numpy",
                   out=tmp_path / "o.zarr")
     assert res.options["engine"] == "numpy" and res.options["engine_rows"] == {"numpy": 280}
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
@@ -158,7 +158,7 @@ def test_numpy_engine_records_itself(partition, tmp_path):
 def test_without_antenna_ids(partition):
     ds, cat, _ = partition
     bare = ds.drop_vars(["baseline_antenna1_id", "baseline_antenna2_id"])
-    res = uvstack(xr.DataTree.from_dict({"p": bare}), cat)
+    res = stack_uv(xr.DataTree.from_dict({"p": bare}), cat)
     assert res.options["engine"] == "numba"
     with pytest.raises(XstackError, match="no baseline antenna ids"):
-        uvstack(xr.DataTree.from_dict({"p": bare}), cat, engine="antenna")
+        stack_uv(xr.DataTree.from_dict({"p": bare}), cat, engine="antenna")

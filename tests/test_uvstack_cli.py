@@ -110,7 +110,7 @@ def test_top_level_api_callable_after_subpackage_import(store):
     import xstack.uvstack.stack  # noqa: F401  (shadows the lazy function by the sub-package)
 
     data, cat = store
-    res = xstack.uvstack(str(data), str(cat), primary_beam="none")
+    res = xstack.stack_uv(str(data), str(cat), primary_beam="none")
     assert res.flux_jy == pytest.approx(0.05, abs=5 * res.flux_err_jy)
     assert xstack.uv_profile(res, bins=3)["count"].sum() == res.n_visibilities
 
@@ -127,9 +127,9 @@ def test_stacked_store_exports_to_ms_and_back(tmp_path):
     cat = Table({"ra": [np.degrees(src[0])], "dec": [np.degrees(src[1])]})
     import xarray as xr
 
-    from xstack.uvstack.stack import uvstack
+    from xstack.uvstack.stack import stack_uv
 
-    res = uvstack(xr.DataTree.from_dict({"spw0_field0": ds}), cat, primary_beam="none",
+    res = stack_uv(xr.DataTree.from_dict({"spw0_field0": ds}), cat, primary_beam="none",
                   out=tmp_path / "s.zarr")
     export_ms(tmp_path / "s.zarr", tmp_path / "s.ms")
     back = open_store(convert_ms(tmp_path / "s.ms", tmp_path / "back.zarr"))

@@ -14,7 +14,7 @@ from dask.callbacks import Callback
 from xstack.coords import lm_to_radec
 from xstack.schema import open_store, write_store
 from xstack.uvstack.reference import reference_uvstack
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 
 def _cat(ra, dec):
@@ -38,7 +38,7 @@ def problem():
 def test_dask_equals_numpy_reference(problem, chunks, scheduler, engine):
     ds, cat, ref = problem
     with dask.config.set(scheduler=scheduler):
-        res = uvstack(xr.DataTree.from_dict({"p": ds.chunk(chunks)}), cat, engine=engine)
+        res = stack_uv(xr.DataTree.from_dict({"p": ds.chunk(chunks)}), cat, engine=engine)
         vis = res.stacked["p"]["VISIBILITY"]
         assert vis.chunks[0] == ds.chunk(chunks)["VISIBILITY"].chunks[0]  # stays lazy, same chunks
         got = vis.values
@@ -108,7 +108,7 @@ def test_memory_bounded_on_store_of_many_chunks(tmp_path):
     cat = _cat(*lm_to_radec([1e-3, -1e-3], [0.0, 2e-3], *VLA_CENTER))
     counter = _ChunkCounter(chunk_bytes // 2)
     with dask.config.set(scheduler="threads", num_workers=2), counter:
-        res = uvstack(tree, cat, out=tmp_path / "out.zarr")
+        res = stack_uv(tree, cat, out=tmp_path / "out.zarr")
     assert counter.n_big >= n_chunks  # the data really went through chunk by chunk
     print("max chunk-sized results held:", counter.max_held, "of", counter.n_big)
     assert counter.max_held <= 8, counter.max_held  # a few chunks, never the whole store
@@ -123,7 +123,7 @@ def test_same_result_on_local_cluster(tmp_path, problem):
     write_store({"p": ds.chunk({"time": 3})}, store)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster):
-        res = uvstack(store, cat, out=tmp_path / "o.zarr")
+        res = stack_uv(store, cat, out=tmp_path / "o.zarr")
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
     got = open_store(tmp_path / "o.zarr")["p"]["VISIBILITY"].values
     ok = np.isfinite(ref["stacked"]["p"])
@@ -131,7 +131,7 @@ def test_same_result_on_local_cluster(tmp_path, problem):
 
 
 @pytest.mark.realdata
-def test_real_evla_phase_centre_is_weighted_mean(tmp_path):
+def test_real_evla_phase_center_is_weighted_mean(tmp_path):
     testing = pytest.importorskip("xstack.testing")
     from xstack.io.convert import convert_ms
 
@@ -144,7 +144,7 @@ def test_real_evla_phase_centre_is_weighted_mean(tmp_path):
     (name, ds), = [(n, tree[n].to_dataset()) for n in tree.children]
     ra0, dec0 = ds.attrs["phase_center"]
     cat = _cat(ra0, dec0)
-    res = uvstack(tree, cat)  # EVLA beam (Memo 195): A = 1 at the centre
+    res = stack_uv(tree, cat)  # EVLA beam (Memo 195): A = 1 at the center
     vis = ds["VISIBILITY"].values.astype(np.complex128)
     w = ds["WEIGHT"].values.astype(np.float64)
     flag = ds["FLAG"].values
@@ -156,11 +156,11 @@ def test_real_evla_phase_centre_is_weighted_mean(tmp_path):
     assert res.flux_jy == pytest.approx(want, rel=1e-12)
     assert res.flux_err_jy == pytest.approx(1 / np.sqrt(np.sum(w[good])), rel=1e-9)
     # the same via the MS path (converted to a temporary store on the fly)
-    res_ms = uvstack(ms, cat)
+    res_ms = stack_uv(ms, cat)
     assert res_ms.flux_jy == pytest.approx(want, rel=1e-12)
     # and a position 20" off: equals the independent numpy evaluation on the real data
     ra1, dec1 = lm_to_radec(1e-4, -5e-5, ra0, dec0)
-    res1 = uvstack(tree, _cat(ra1, dec1))
+    res1 = stack_uv(tree, _cat(ra1, dec1))
     ref = reference_uvstack([(name, ds)], [np.degrees(ra1)], [np.degrees(dec1)],
                             weighting="pb", primary_beam="auto")
     assert res1.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-9)
@@ -172,7 +172,7 @@ def test_row_substeps_inside_a_chunk(problem, monkeypatch):
 
     ds, cat, ref = problem
     monkeypatch.setattr(st, "_ROWS_PER_STEP", 7)
-    res = uvstack(xr.DataTree.from_dict({"p": ds}), cat)
+    res = stack_uv(xr.DataTree.from_dict({"p": ds}), cat)
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
     ok = np.isfinite(ref["stacked"]["p"])
     np.testing.assert_allclose(res.stacked["p"]["VISIBILITY"].values[ok], ref["stacked"]["p"][ok],
@@ -180,7 +180,7 @@ def test_row_substeps_inside_a_chunk(problem, monkeypatch):
 
 
 @pytest.mark.realdata
-def test_real_alma_phase_centre_is_weighted_mean(tmp_path):
+def test_real_alma_phase_center_is_weighted_mean(tmp_path):
     testing = pytest.importorskip("xstack.testing")
     from xstack.io.convert import convert_ms
     from xstack.schema import iter_partitions
@@ -192,7 +192,7 @@ def test_real_alma_phase_centre_is_weighted_mean(tmp_path):
     tree = open_store(convert_ms(ms, tmp_path / "alma.zarr"))
     name, ds = next(iter(iter_partitions(tree)))
     ra0, dec0 = ds.attrs["phase_center"]
-    res = uvstack(tree, _cat(ra0, dec0))  # ALMA beam: 10.7 m Airy, A = 1 at the centre
+    res = stack_uv(tree, _cat(ra0, dec0))  # ALMA beam: 10.7 m Airy, A = 1 at the center
     vis = ds["VISIBILITY"].values.astype(np.complex128)
     w = ds["WEIGHT"].values.astype(np.float64)
     par = np.array([str(p) in ("XX", "YY") for p in ds["polarization"].values])

@@ -24,7 +24,7 @@ from xstack.cli import main
 from xstack.coords import lm_to_radec, radec_to_lmn
 from xstack.schema import write_store
 from xstack.uvstack import kernels as K
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 MISSCALED = "differ by"
 
@@ -212,7 +212,7 @@ def _brute_force_std(ds, sigma_b, cat, n_real):
 
 
 #: plain eq. 4 (the brute force has no smearing correction)
-PLAIN = {"smearing": "none"} if "smearing" in inspect.signature(uvstack).parameters else {}
+PLAIN = {"smearing": "none"} if "smearing" in inspect.signature(stack_uv).parameters else {}
 
 
 CLI_PLAIN = ["--smearing", "none"] if PLAIN else []
@@ -221,7 +221,7 @@ CLI_PLAIN = ["--smearing", "none"] if PLAIN else []
 def _stack(ds, cat, vis):
     d = ds.copy()
     d["VISIBILITY"] = (ds["VISIBILITY"].dims, vis)
-    return uvstack(xr.DataTree.from_dict({"spw0_field0": d}), cat, weighting="none",
+    return stack_uv(xr.DataTree.from_dict({"spw0_field0": d}), cat, weighting="none",
                    primary_beam="none", **PLAIN)
 
 
@@ -269,7 +269,7 @@ def test_two_datasets_and_written_store(tmp_path):
     ds_b = make_stack_partition(n_time=8, n_ant=6, n_chan=8, sigma=1.0, seed=9)
     sig_b = np.full(ds_b.sizes["baseline_id"], 2.5)
     ds_b["WEIGHT"] = ds_b["WEIGHT"] * 0.5  # honest would be 1/2.5^2 = 0.16; claims 0.5
-    # brute force: both pointings at the same centre, every position in both (no beam), so
+    # brute force: both pointings at the same center, every position in both (no beam), so
     # the partition factors s_p (= number of positions) cancel: one weighted mean
     truth_parts = []
     rng = np.random.default_rng(31)
@@ -296,14 +296,14 @@ def test_two_datasets_and_written_store(tmp_path):
             trees.append(xr.DataTree.from_dict({"spw0_field0": d}))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = uvstack(trees, cat, weighting="none", primary_beam="none", **PLAIN)
+            res = stack_uv(trees, cat, weighting="none", primary_beam="none", **PLAIN)
             emp.append(res.flux_err_empirical_jy)
             if i == 0:
                 # written store (shared phasor) and blocks of 4 integrations: same error
-                out = uvstack(trees, cat, weighting="none", primary_beam="none", **PLAIN,
+                out = stack_uv(trees, cat, weighting="none", primary_beam="none", **PLAIN,
                               out=tmp_path / "s.zarr")
                 chunked = [t.chunk({"time": 4}) for t in trees]
-                blocks = uvstack(chunked, cat, weighting="none", primary_beam="none", **PLAIN)
+                blocks = stack_uv(chunked, cat, weighting="none", primary_beam="none", **PLAIN)
         assert len(res.partition_sums) == 2
     assert out.flux_err_empirical_jy == pytest.approx(emp[0], rel=1e-12)
     from xstack.schema import open_store
@@ -454,25 +454,25 @@ def test_real_evla_empirical_noise_and_error(evla):
     assert 2.0 < np.sqrt(np.nanmedian(invw[:, pm])) < 3.0
     assert np.median(ours) < 0.02
 
-    # one position at the phase centre, no weighting, no beam: P = 1, so the honest error is
+    # one position at the phase center, no weighting, no beam: P = 1, so the honest error is
     # sqrt(sum w^2 sigma^2) / sum w with the casacore sigma of each visibility's baseline
     ra0, dec0 = (float(x) for x in ds.attrs["phase_center"])
     one = Table({"ra": [np.degrees(ra0)], "dec": [np.degrees(dec0)]})
     with pytest.warns(UserWarning, match="errors='empirical'"):
-        res = uvstack(store, one, weighting="none", primary_beam="none")
+        res = stack_uv(store, one, weighting="none", primary_beam="none")
     num = sum(np.sum(w.astype(np.float64) ** 2) * s**2 for w, s in wts.values())
     den = sum(np.sum(w.astype(np.float64)) for w, _ in wts.values())
     assert res.n_visibilities == sum(w.size for w, _ in wts.values())
     assert res.flux_err_empirical_jy == pytest.approx(np.sqrt(num) / den, rel=0.2)
     assert res.noise_estimate["own"] == res.n_visibilities
 
-    # a 20-position stack (within 20" of the centre): orders of magnitude apart
+    # a 20-position stack (within 20" of the center): orders of magnitude apart
     rng = np.random.default_rng(0)
     l, m = rng.uniform(-1e-4, 1e-4, (2, 20))
     ra, dec = lm_to_radec(l, m, ra0, dec0)
     cat = Table({"ra": np.degrees(ra), "dec": np.degrees(dec)})
     with pytest.warns(UserWarning, match="errors='empirical'"):
-        res20 = uvstack(store, cat)
+        res20 = stack_uv(store, cat)
     assert res20.n_positions == 20
     assert res20.flux_err_empirical_jy < res20.flux_err_jy / 100
     assert res20.weight_scale < 1e-4

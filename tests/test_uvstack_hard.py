@@ -13,7 +13,7 @@ from xstack.beams import standard_beam
 from xstack.coords import lm_to_radec
 from xstack.errors import XstackError
 from xstack.uvstack.reference import reference_uvstack
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 
 def _tree(ds, name="spw0_field0"):
@@ -29,13 +29,13 @@ def _cat(ra, dec, **cols):
 
 @pytest.mark.parametrize("dec0_deg", [89.9, -89.9])
 def test_near_the_poles(dec0_deg):
-    """Phase centre 0.1 deg from a pole, source on the far side of the pole (RA + 180 deg)."""
+    """Phase center 0.1 deg from a pole, source on the far side of the pole (RA + 180 deg)."""
     center = (0.3, np.radians(dec0_deg))
     sign = np.sign(dec0_deg)
-    src = (0.3 + np.pi, sign * np.radians(89.995))  # 0.105 deg from the centre, across the pole
+    src = (0.3 + np.pi, sign * np.radians(89.995))  # 0.105 deg from the center, across the pole
     ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, phase_center=center,
                               sources=[(*src, 2e-3)], weight_scale=1.0, seed=1)
-    res = uvstack(_tree(ds), _cat(*src), primary_beam="none", weighting="none")
+    res = stack_uv(_tree(ds), _cat(*src), primary_beam="none", weighting="none")
     assert res.flux_jy == pytest.approx(2e-3, rel=1e-9)
     assert abs(res.flux_imag_jy) < 1e-12
 
@@ -47,9 +47,9 @@ def test_across_ra_zero():
                               sources=[(src_ra, center[1], 1e-3)], weight_scale=1.0)
     for ra_deg in (0.004, 360.004, -359.996):
         cat = Table({"ra": [ra_deg], "dec": [-30.0]})
-        res = uvstack(_tree(ds), cat, primary_beam="none", weighting="none")
+        res = stack_uv(_tree(ds), cat, primary_beam="none", weighting="none")
         assert res.flux_jy == pytest.approx(1e-3, rel=1e-9)
-    # the stacked phase centre is the position (wrapped into [0, 360))
+    # the stacked phase center is the position (wrapped into [0, 360))
     assert res.options["stack_center_deg"][0] == pytest.approx(0.004, abs=1e-9)
 
 
@@ -62,15 +62,15 @@ def test_at_and_beyond_the_primary_beam_cutoff():
     ra_in, dec_in = lm_to_radec(r_cut * (1 - 1e-6), 0.0, *VLA_CENTER)
     ra_out, dec_out = lm_to_radec(r_cut * (1 + 1e-6), 0.0, *VLA_CENTER)
     with pytest.warns(UserWarning, match="1 of 2"):
-        res = uvstack(_tree(ds), _cat([ra_in, ra_out], [dec_in, dec_out]), pb_cutoff=0.1)
+        res = stack_uv(_tree(ds), _cat([ra_in, ra_out], [dec_in, dec_out]), pb_cutoff=0.1)
     assert list(res.positions["used"][:, 0]) == [True, False]
     assert len(res.uncovered) == 1
     assert float(beam(r_cut * (1 - 1e-6), fmax)) >= 0.1
     # a lower cutoff admits it; no cutoff-free position is silently kept
-    res2 = uvstack(_tree(ds), _cat([ra_in, ra_out], [dec_in, dec_out]), pb_cutoff=0.05)
+    res2 = stack_uv(_tree(ds), _cat([ra_in, ra_out], [dec_in, dec_out]), pb_cutoff=0.05)
     assert res2.n_positions == 2
     with pytest.raises(XstackError, match="none of the 1"):
-        uvstack(_tree(ds), _cat(ra_out, dec_out))
+        stack_uv(_tree(ds), _cat(ra_out, dec_out))
 
 
 @pytest.mark.parametrize("weighting", ["none", "pb"])
@@ -86,13 +86,13 @@ def test_near_the_primary_beam_null_and_in_the_sidelobes(weighting):
     radii = [0.5 * r_null, 0.98 * r_null, 1.3 * r_null, 1.6 * r_null]
     ra, dec = lm_to_radec(np.array(radii), np.zeros(4), *VLA_CENTER)
     with pytest.warns(UserWarning, match="2 of 4"):
-        res = uvstack(_tree(ds), _cat(ra, dec), pb_cutoff=0.0, weighting=weighting)
+        res = stack_uv(_tree(ds), _cat(ra, dec), pb_cutoff=0.0, weighting=weighting)
     assert list(res.positions["used"][:, 0]) == [True, True, False, False]
     assert np.isfinite(res.flux_jy) and np.isfinite(res.flux_err_jy)
     # a 1 % cutoff drops the one next to the null too, and still not the sidelobe ones
     assert float(beam(0.98 * r_null, freq.max())) < 0.01
     with pytest.warns(UserWarning, match="3 of 4"):
-        res01 = uvstack(_tree(ds), _cat(ra, dec), pb_cutoff=0.01, weighting=weighting)
+        res01 = stack_uv(_tree(ds), _cat(ra, dec), pb_cutoff=0.01, weighting=weighting)
     assert list(res01.positions["used"][:, 0]) == [True, False, False, False]
 
 
@@ -100,8 +100,8 @@ def test_near_the_primary_beam_null_and_in_the_sidelobes(weighting):
 def test_duplicate_positions(weighting, rng):
     ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=3)
     ra, dec = lm_to_radec(rng.uniform(-3e-3, 3e-3, 5), rng.uniform(-3e-3, 3e-3, 5), *VLA_CENTER)
-    once = uvstack(_tree(ds), _cat(ra, dec), weighting=weighting)
-    twice = uvstack(_tree(ds), _cat(np.repeat(ra, 2), np.repeat(dec, 2)), weighting=weighting)
+    once = stack_uv(_tree(ds), _cat(ra, dec), weighting=weighting)
+    twice = stack_uv(_tree(ds), _cat(np.repeat(ra, 2), np.repeat(dec, 2)), weighting=weighting)
     assert twice.flux_jy == pytest.approx(once.flux_jy, rel=1e-12)
     assert twice.n_positions == 10
     np.testing.assert_allclose(twice.stacked["spw0_field0"]["VISIBILITY"].values,
@@ -116,8 +116,8 @@ def test_hundred_thousand_positions(rng):
     n = 100_000
     ra, dec = lm_to_radec(rng.uniform(-5e-3, 5e-3, n), rng.uniform(-5e-3, 5e-3, n), *VLA_CENTER)
     cat = _cat(ra, dec)
-    fast = uvstack(_tree(ds), cat, weighting="pb")
-    slow = uvstack(_tree(ds), cat, weighting="pb", engine="numpy")
+    fast = stack_uv(_tree(ds), cat, weighting="pb")
+    slow = stack_uv(_tree(ds), cat, weighting="pb", engine="numpy")
     assert fast.n_positions == n
     assert fast.flux_jy == pytest.approx(slow.flux_jy, rel=1e-9, abs=1e-12)
     np.testing.assert_allclose(fast.stacked["spw0_field0"]["VISIBILITY"].values,
@@ -135,7 +135,7 @@ def test_fully_flagged_chunks_and_nan_under_flags(rng):
     ds["FLAG"] = (ds["FLAG"].dims, flag)
     chunked = ds.chunk({"time": 2})
     ra, dec = lm_to_radec([1e-3, -2e-3], [5e-4, 1e-3], *VLA_CENTER)
-    res = uvstack(_tree(chunked), _cat(ra, dec))
+    res = stack_uv(_tree(chunked), _cat(ra, dec))
     ref = reference_uvstack([("p", ds)], np.degrees(ra), np.degrees(dec), weighting="pb",
                             primary_beam="auto")
     assert np.isfinite(res.flux_jy) and np.isfinite(res.flux_err_jy)
@@ -147,21 +147,21 @@ def test_all_zero_weights_are_an_error_not_nan():
     ds = make_stack_partition(n_time=4, n_ant=5, n_chan=2, sigma=1.0)
     cat = _cat([VLA_CENTER[0]] * 2, [VLA_CENTER[1]] * 2, weight=[0.0, 0.0])
     with pytest.raises(XstackError, match="weights are zero"):
-        uvstack(_tree(ds), cat, weighting="column")
+        stack_uv(_tree(ds), cat, weighting="column")
     zero = ds.copy()
     zero["WEIGHT"] = zero["WEIGHT"] * 0
     with pytest.raises(XstackError, match="no unflagged visibility"):
-        uvstack(_tree(zero), _cat(*VLA_CENTER))
+        stack_uv(_tree(zero), _cat(*VLA_CENTER))
     flagged = ds.copy()
     flagged["FLAG"] = flagged["FLAG"] | True
     with pytest.raises(XstackError, match="no unflagged visibility"):
-        uvstack(_tree(flagged), _cat(*VLA_CENTER))
+        stack_uv(_tree(flagged), _cat(*VLA_CENTER))
 
 
 def test_float32_input(rng):
     ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=6, dtype=np.complex64)
     ra, dec = lm_to_radec(rng.uniform(-3e-3, 3e-3, 7), rng.uniform(-3e-3, 3e-3, 7), *VLA_CENTER)
-    res = uvstack(_tree(ds), _cat(ra, dec))
+    res = stack_uv(_tree(ds), _cat(ra, dec))
     ref = reference_uvstack([("p", ds)], np.degrees(ra), np.degrees(dec), weighting="pb",
                             primary_beam="auto")
     st = res.stacked["spw0_field0"]["VISIBILITY"]
@@ -181,7 +181,7 @@ def test_long_baselines_high_frequency_float64_phases():
                               weight_scale=1.0, telescope="ALMA", dish=12.0,
                               pols=("XX", "YY"), dtype=np.complex128)
     assert float(np.abs(ds["UVW"]).max()) > 1e4
-    res = uvstack(_tree(ds), _cat(*src), primary_beam="none", weighting="none")
+    res = stack_uv(_tree(ds), _cat(*src), primary_beam="none", weighting="none")
     assert res.flux_jy == pytest.approx(1.0, rel=1e-6)
     v = res.stacked["spw0_field0"]["VISIBILITY"].values
     assert np.max(np.abs(np.angle(v))) < 1e-6  # phase error of every stacked visibility
@@ -191,10 +191,10 @@ def test_dask_backed_store_with_awkward_chunks(rng):
     """Frequency split over chunks and UVW chunked differently: rechunked, same result."""
     ds = make_stack_partition(n_time=9, n_ant=6, n_chan=4, sigma=1.0, seed=8)
     ra, dec = lm_to_radec(rng.uniform(-3e-3, 3e-3, 5), rng.uniform(-3e-3, 3e-3, 5), *VLA_CENTER)
-    want = uvstack(_tree(ds), _cat(ra, dec))
+    want = stack_uv(_tree(ds), _cat(ra, dec))
     odd = ds.copy()
     for var in ("VISIBILITY", "WEIGHT", "FLAG"):
         odd[var] = (ds[var].dims, da.from_array(ds[var].values, chunks=(4, 5, 1, 2)))
     odd["UVW"] = (ds["UVW"].dims, da.from_array(ds["UVW"].values, chunks=(3, 7, 3)))
-    got = uvstack(_tree(odd), _cat(ra, dec))
+    got = stack_uv(_tree(odd), _cat(ra, dec))
     assert got.flux_jy == pytest.approx(want.flux_jy, rel=1e-12)

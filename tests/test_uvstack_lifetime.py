@@ -1,6 +1,6 @@
 """A stack never outlives its data (issue 10, item 7).
 
-``uvstack(MS path)`` converts into a temporary directory. The stacked datasets are lazy: they
+``stack_uv(MS path)`` converts into a temporary directory. The stacked datasets are lazy: they
 read that directory when computed. Keeping ``res.stacked[name]`` and dropping ``res`` used to
 free the directory and the stack read NaN visibilities and False flags without an error.
 Truth: the same stack computed while the result was alive, and a python-casacore read of the
@@ -32,11 +32,11 @@ def test_stacked_data_outlive_the_result(tmp_path):
         ra, dec = np.degrees(f.getcol("PHASE_DIR")[0, 0])
     cat = Table({"ra": [ra + 0.001], "dec": [dec]})
     before = _temporary_stores()
-    res = xstack.uvstack(ms, cat, weighting="none")
+    res = xstack.stack_uv(ms, cat, weighting="none")
     name = next(iter(res.stacked))
     ds = res.stacked[name]
     tmpdirs = _temporary_stores() - before
-    assert tmpdirs, "uvstack(MS) should convert into a temporary directory"
+    assert tmpdirs, "stack_uv(MS) should convert into a temporary directory"
     expected = ds["VISIBILITY"].values.copy()
     expected_flag = ds["FLAG"].values.copy()
     assert np.isfinite(expected[~expected_flag]).all() and (~expected_flag).any()

@@ -1,6 +1,6 @@
 """uv-stacking ``weighting="sigma2"`` with sigma_k measured in a residual image (paper §3.2).
 
-(a) known noise varying across an image is recovered; (b) a source at the stamp centre does
+(a) known noise varying across an image is recovered; (b) a source at the stamp center does
 not inflate sigma_k; (c) end to end: a primary-beam corrected residual image of simulated
 data gives weights 1/sigma_k^2 and a flux error no worse than equal weights; (d) bad input
 gets a clear error and nothing is written.
@@ -25,7 +25,7 @@ from xstack.errors import XstackError
 from xstack.imaging.image import make_image
 from xstack.schema import open_store, write_store
 from xstack.uvstack.localnoise import CLIP_CORRECTION, local_noise, measure_local_noise
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 CELL = 2.0  # arcsec, synthetic images
 BMAJ = 6.0  # arcsec = 3 pixels
@@ -101,12 +101,12 @@ def test_clipped_estimator_is_unbiased_and_resists_outliers():
 
 # --- (b) the central mask -------------------------------------------------------------------
 
-def test_source_at_stamp_centre_does_not_inflate_sigma():
+def test_source_at_stamp_center_does_not_inflate_sigma():
     rng = np.random.default_rng(2)
     n = 200
     noise = rng.normal(size=(n, n))
     yy, xx = np.mgrid[0:n, 0:n]
-    # a source shaped like the restoring beam at the centre pixel
+    # a source shaped like the restoring beam at the center pixel
     shape = np.exp(-4 * np.log(2) * ((xx - 100) ** 2 + (yy - 100) ** 2) / (BMAJ / CELL) ** 2)
     h = _header(n, n)
     pos = _world(fits.PrimaryHDU(noise, header=h), np.array([100.0]), np.array([100.0]))
@@ -188,7 +188,7 @@ def scene(tmp_path_factory):
 
 def test_end_to_end_weights_follow_local_noise(scene):
     out = scene["tmp"] / "sigma2.zarr"
-    res = uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["resid"],
+    res = stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["resid"],
                   out=out)
     sigma = local_noise(scene["resid"], scene["cat"])
     # the weights used are exactly 1/sigma_k^2 of the estimates
@@ -204,13 +204,13 @@ def test_end_to_end_weights_follow_local_noise(scene):
     stored = open_store(out).attrs["uvstack"]["options"]
     assert stored["sigma"] == res.options["sigma"]
     # an in-memory image gives the same weights
-    mem = uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["img"])
+    mem = stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["img"])
     np.testing.assert_allclose(mem.positions["weight_used"], res.positions["weight_used"],
                                rtol=1e-6)
     assert mem.options["sigma"] == "local-noise:<in-memory image>"
 
-    none = uvstack(scene["ds"], scene["cat"], weighting="none")
-    pb = uvstack(scene["ds"], scene["cat"], weighting="pb")
+    none = stack_uv(scene["ds"], scene["cat"], weighting="none")
+    pb = stack_uv(scene["ds"], scene["cat"], weighting="pb")
     # measured (seed 3/4): flux_err 1.055 mJy (sigma2), 1.052 (pb), 1.226 (none)
     assert res.flux_err_jy <= none.flux_err_jy
     assert res.flux_err_jy < 0.9 * none.flux_err_jy
@@ -223,10 +223,10 @@ def test_catalog_sigma_column_is_overridden_with_a_warning(scene):
     cat = Table(scene["cat"], copy=True)
     cat["sigma"] = 1.0
     with pytest.warns(UserWarning, match="sigma column is ignored"):
-        res = uvstack(scene["ds"], cat, weighting="sigma2", noise_image=scene["resid"])
+        res = stack_uv(scene["ds"], cat, weighting="sigma2", noise_image=scene["resid"])
     assert res.options["sigma"].startswith("local-noise:")
     # without a noise image the column is used as before
-    given = uvstack(scene["ds"], cat, weighting="sigma2")
+    given = stack_uv(scene["ds"], cat, weighting="sigma2")
     assert given.options["sigma"] == "given"
     assert np.ptp(given.positions["weight_used"][:, 0]) == 0
 
@@ -240,8 +240,8 @@ def test_uncorrected_residual_image_gives_the_corrected_noise(scene):
     # sigma/A at the position vs the rms of a corrected stamp, whose pixels each carry their
     # own 1/A (the stamp spans a range of A): equal to a few % (measured up to 6.5 % at A~0.4)
     np.testing.assert_allclose(plain.sigma, corr, rtol=0.08)
-    a = uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["plain"])
-    b = uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["resid"])
+    a = stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["plain"])
+    b = stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=scene["resid"])
     assert a.flux_err_jy == pytest.approx(b.flux_err_jy, rel=0.01)
 
 
@@ -254,14 +254,14 @@ def test_uncorrected_image_without_a_beam_warns(scene, tmp_path):
     path = tmp_path / "nobeam.fits"
     hdu.writeto(path)
     with pytest.warns(UserWarning, match="not primary-beam corrected"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=path)
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=path)
 
 
 def test_positions_in_no_pointing_need_no_estimate(scene):
     cat = Table(scene["cat"], copy=True)
     cat.add_row({"ra": float(cat["ra"][0]), "dec": float(cat["dec"][0]) + 5.0})  # far away
     with pytest.warns(UserWarning, match="lie in no pointing"):
-        res = uvstack(scene["ds"], cat, weighting="sigma2", noise_image=scene["resid"])
+        res = stack_uv(scene["ds"], cat, weighting="sigma2", noise_image=scene["resid"])
     assert res.n_positions == N_POS and np.isnan(res.positions["sigma_local"][-1])
 
 
@@ -295,21 +295,21 @@ def linear_fits(tmp_path):
 def test_api_bad_noise_images(scene, tmp_path, linear_fits):
     out = tmp_path / "bad.zarr"
     with pytest.raises(XstackError, match="celestial WCS"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=linear_fits, out=out)
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=linear_fits, out=out)
     with pytest.raises(XstackError, match="no such image file"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=tmp_path / "x.fits",
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=tmp_path / "x.fits",
                 out=out)
     text = tmp_path / "notfits.fits"
     text.write_text("not a FITS file\n")
     with pytest.raises(XstackError, match="cannot read as a FITS image"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=text, out=out)
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=text, out=out)
     model = fits.PrimaryHDU(np.zeros((64, 64)), header=_header(64, 64, bunit="Jy/pixel"))
     with pytest.raises(XstackError, match="BUNIT is 'Jy/pixel'"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=model, out=out)
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=model, out=out)
     with pytest.raises(XstackError, match="only with weighting='sigma2'"):
-        uvstack(scene["ds"], scene["cat"], weighting="pb", noise_image=scene["resid"], out=out)
+        stack_uv(scene["ds"], scene["cat"], weighting="pb", noise_image=scene["resid"], out=out)
     with pytest.raises(XstackError, match="not both"):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", sigma=1.0,
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", sigma=1.0,
                 noise_image=scene["resid"], out=out)
     assert not out.exists() and _written(tmp_path, "bad") == []
 
@@ -325,7 +325,7 @@ def test_api_positions_outside_the_image(scene, tmp_path):
         local_noise(small, scene["cat"])
     out = tmp_path / "outside.zarr"
     with pytest.raises(XstackError, match=rf"{bad.size} of {N_POS} positions: row {bad[0] + 1} "):
-        uvstack(scene["ds"], scene["cat"], weighting="sigma2", noise_image=small, out=out)
+        stack_uv(scene["ds"], scene["cat"], weighting="sigma2", noise_image=small, out=out)
     assert not out.exists()
 
 

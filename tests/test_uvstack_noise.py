@@ -12,7 +12,7 @@ from _uvstack_helpers import VLA_CENTER, make_stack_partition
 from astropy.table import Table
 
 from xstack.coords import lm_to_radec
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 
 def _config(kind):
@@ -58,7 +58,7 @@ def _scatter(kind, n_real, seed=0):
     flux, err = [], []
     with dask.config.set(scheduler="synchronous"):
         for _ in range(n_real):
-            res = uvstack(_realisation(parts, rng), cat, weighting="pb")
+            res = stack_uv(_realisation(parts, rng), cat, weighting="pb")
             flux.append(res.flux_jy)
             err.append(res.flux_err_jy)
     return np.array(flux), np.array(err), res

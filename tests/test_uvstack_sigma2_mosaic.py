@@ -50,8 +50,8 @@ def test_sigma2_with_thermal_sigma_equals_pb_on_a_mosaic(mosaic):
     tree = xr.DataTree.from_dict({"/": xr.Dataset(), **{f"/{k}": v for k, v in parts.items()}})
     cat = cat.copy()
     cat["sigma"] = _thermal_sigma(parts, cat) * 1e3      # any common scale: only ratios matter
-    pb = xstack.uvstack(tree, cat, weighting="pb", smearing="none")
-    s2 = xstack.uvstack(tree, cat, weighting="sigma2", smearing="none")
+    pb = xstack.stack_uv(tree, cat, weighting="pb", smearing="none")
+    s2 = xstack.stack_uv(tree, cat, weighting="sigma2", smearing="none")
     assert s2.flux_err_jy == pytest.approx(pb.flux_err_jy, rel=1e-6)
     assert s2.flux_jy == pytest.approx(pb.flux_jy, rel=1e-6, abs=1e-6 * pb.flux_err_jy)
     # the old rule (one weight per position in every pointing) was far worse
@@ -65,7 +65,7 @@ def test_sigma2_single_pointing_is_inverse_variance(mosaic):
     cat = cat.copy()
     rng = np.random.default_rng(0)
     cat["sigma"] = rng.uniform(1.0, 3.0, len(cat))
-    res = xstack.uvstack(tree, cat, weighting="sigma2", smearing="none")
+    res = xstack.stack_uv(tree, cat, weighting="sigma2", smearing="none")
     used = res.positions["used"][:, 0]
     w = np.asarray(res.positions["weight_used"][:, 0])[used]
     np.testing.assert_allclose(w / w.max(), (1 / cat["sigma"][used] ** 2) /

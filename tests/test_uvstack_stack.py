@@ -1,4 +1,4 @@
-"""uvstack(): exactness against analytic truth and the plain-numpy reference, outputs, errors."""
+"""stack_uv(): exactness against analytic truth and the plain-numpy reference, outputs, errors."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from xstack.coords import SPEED_OF_LIGHT, lm_to_radec, radec_to_lmn
 from xstack.errors import XstackError
 from xstack.schema import open_store
 from xstack.uvstack.reference import reference_uvstack
-from xstack.uvstack.stack import uvstack
+from xstack.uvstack.stack import stack_uv
 
 
 def _tree(**parts):
@@ -40,7 +40,7 @@ def test_equals_numpy_reference_on_random_data(rng, weighting, beam):
     ra, dec = _offsets(VLA_CENTER, rng, 17, 0.004)
     cat = _cat(ra, dec, weight=rng.uniform(0.2, 2.0, 17))
     sigma = rng.uniform(0.5, 2.0, 17) if weighting == "sigma2" else None
-    res = uvstack(_tree(p=ds), cat, weighting=weighting, primary_beam=beam, sigma=sigma)
+    res = stack_uv(_tree(p=ds), cat, weighting=weighting, primary_beam=beam, sigma=sigma)
     ref = reference_uvstack([("p", ds)], cat["ra"], cat["dec"], weighting=weighting,
                             primary_beam=beam, column_weight=cat["weight"], sigma=sigma)
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-9, abs=1e-12)
@@ -55,7 +55,7 @@ def test_equals_numpy_reference_on_random_data(rng, weighting, beam):
 def test_single_position_is_plain_phase_shift():
     ds = make_stack_partition(n_time=6, n_ant=5, n_chan=3, sigma=1.0, seed=5)
     ra, dec = VLA_CENTER[0] + 0.003, VLA_CENTER[1] - 0.002
-    res = uvstack(_tree(p=ds), _cat(ra, dec), primary_beam="none", weighting="none")
+    res = stack_uv(_tree(p=ds), _cat(ra, dec), primary_beam="none", weighting="none")
     l, m, n, n1 = radec_to_lmn(ra, dec, *VLA_CENTER)
     uvw = ds["UVW"].values
     d = uvw[..., 0] * l + uvw[..., 1] * m + uvw[..., 2] * n1
@@ -93,13 +93,13 @@ def _isolated_pointings(fluxes, separation=0.02, telescope="ALMA", dish=12.0, fr
 def test_flux_equals_mean_input_flux_mosaic():
     fluxes = [1e-3, 2.5e-3, 0.4e-3]
     parts, ra, dec = _isolated_pointings(fluxes)
-    res = uvstack(xr.DataTree.from_dict(parts), _cat(ra, dec), weighting="none")
+    res = stack_uv(xr.DataTree.from_dict(parts), _cat(ra, dec), weighting="none")
     assert res.flux_jy == pytest.approx(np.mean(fluxes), rel=1e-6)
     assert res.n_positions == 3
     assert list(res.positions["n_pointings"]) == [1, 1, 1]
     # the same sources as separate datasets stacked together
     trees = [xr.DataTree.from_dict({k: v}) for k, v in parts.items()]
-    res2 = uvstack(trees, _cat(ra, dec), weighting="none")
+    res2 = stack_uv(trees, _cat(ra, dec), weighting="none")
     assert res2.flux_jy == pytest.approx(np.mean(fluxes), rel=1e-6)
     assert len(res2.stacked) == 3
 
@@ -111,7 +111,7 @@ def test_mosaic_weights_corrected_by_sum_of_position_weights():
     # two more positions in pointing 0, at the source (exact duplicates of position 0)
     ra3 = np.concatenate([ra, [ra[0], ra[0]]])
     dec3 = np.concatenate([dec, [dec[0], dec[0]]])
-    res = uvstack(xr.DataTree.from_dict(parts), _cat(ra3, dec3), weighting="none")
+    res = stack_uv(xr.DataTree.from_dict(parts), _cat(ra3, dec3), weighting="none")
     assert res.stacked["spw0_field0"].attrs["uvstack_sum_weight"] == 3.0
     np.testing.assert_allclose(res.stacked["spw0_field0"]["WEIGHT"].values,
                                3.0 * parts["spw0_field0"]["WEIGHT"].values)
@@ -123,7 +123,7 @@ def test_output_store(tmp_path, rng):
     ds = make_stack_partition(n_time=6, n_ant=5, n_chan=3, sigma=1.0, seed=2)
     ra, dec = _offsets(VLA_CENTER, rng, 4, 0.003)
     out = tmp_path / "stacked.zarr"
-    res = uvstack(_tree(spw0_field0=ds), _cat(ra, dec), out=out)
+    res = stack_uv(_tree(spw0_field0=ds), _cat(ra, dec), out=out)
     tree = open_store(out)
     st = tree["spw0_field0"].to_dataset()
     assert tree.attrs["xstack_kind"] == "stacked"
@@ -135,9 +135,9 @@ def test_output_store(tmp_path, rng):
     np.testing.assert_allclose(st["STACK_POSITION_RA"].values, np.degrees(ra))
     assert tree.attrs["uvstack"]["flux_jy"] == pytest.approx(res.flux_jy)
     with pytest.raises(XstackError, match="exists"):
-        uvstack(_tree(spw0_field0=ds), _cat(ra, dec), out=out)
-    # restacking the written store at its own phase centre gives the same flux
-    res2 = uvstack(out, _cat(*pc), primary_beam="none", weighting="none")
+        stack_uv(_tree(spw0_field0=ds), _cat(ra, dec), out=out)
+    # restacking the written store at its own phase center gives the same flux
+    res2 = stack_uv(out, _cat(*pc), primary_beam="none", weighting="none")
     assert res2.flux_jy == pytest.approx(res.flux_jy, rel=1e-6)
 
 
@@ -147,8 +147,8 @@ def test_written_stack_and_flux_in_one_pass_equal_the_flux_only_pass(tmp_path, r
     ds = make_stack_partition(n_time=12, n_ant=6, n_chan=4, sigma=0.5, seed=8, flag_frac=0.1)
     ds = ds.chunk({"time": 5, "baseline_id": 7})
     ra, dec = _offsets(VLA_CENTER, rng, 9, 0.003)
-    alone = uvstack(_tree(spw0_field0=ds), _cat(ra, dec))
-    written = uvstack(_tree(spw0_field0=ds), _cat(ra, dec), out=tmp_path / "s.zarr")
+    alone = stack_uv(_tree(spw0_field0=ds), _cat(ra, dec))
+    written = stack_uv(_tree(spw0_field0=ds), _cat(ra, dec), out=tmp_path / "s.zarr")
     for key in ("flux_jy", "flux_err_jy", "flux_imag_jy", "n_visibilities"):
         assert getattr(written, key) == pytest.approx(getattr(alone, key), rel=1e-12, abs=0)
     ref = reference_uvstack([("spw0_field0", ds.compute())], np.degrees(ra), np.degrees(dec),
@@ -165,11 +165,11 @@ def test_uncovered_positions_reported_and_all_outside_rejected():
     ds = make_stack_partition(n_time=4, n_ant=5, n_chan=2, sigma=1.0)
     far = (VLA_CENTER[0] + 0.2, VLA_CENTER[1])
     with pytest.warns(UserWarning, match="1 of 2 positions"):
-        res = uvstack(_tree(p=ds), _cat([VLA_CENTER[0], far[0]], [VLA_CENTER[1], far[1]]))
+        res = stack_uv(_tree(p=ds), _cat([VLA_CENTER[0], far[0]], [VLA_CENTER[1], far[1]]))
     assert len(res.uncovered) == 1 and res.n_positions == 1
     assert res.uncovered["ra"][0] == pytest.approx(np.degrees(far[0]))
     with pytest.raises(XstackError, match="none of the 1 positions"):
-        uvstack(_tree(p=ds), _cat(*far))
+        stack_uv(_tree(p=ds), _cat(*far))
 
 
 def test_bad_options():
@@ -184,15 +184,15 @@ def test_bad_options():
                         ({"uvmin": "5km", "uvmax": "1km"}, "smaller"),
                         ({"primary_beam": "/nonexistent/pb.fits"}, "no such")]:
         with pytest.raises(XstackError, match=msg):
-            uvstack(_tree(p=ds), cat, **kwargs)
+            stack_uv(_tree(p=ds), cat, **kwargs)
 
 
 def test_uv_range_selects_visibilities():
     ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=4)
     cat = _cat(*VLA_CENTER)
-    full = uvstack(_tree(p=ds), cat, primary_beam="none")
+    full = stack_uv(_tree(p=ds), cat, primary_beam="none")
     for lo, hi in [("500m", "2000m"), ("3klambda", "10klambda"), (None, "1.5km")]:
-        res = uvstack(_tree(p=ds), cat, primary_beam="none", uvmin=lo, uvmax=hi)
+        res = stack_uv(_tree(p=ds), cat, primary_beam="none", uvmin=lo, uvmax=hi)
         ref = reference_uvstack([("p", ds)], cat["ra"], cat["dec"], uvmin=lo, uvmax=hi)
         assert 0 < res.n_visibilities < full.n_visibilities
         assert res.n_visibilities == ref["n_visibilities"]
@@ -225,13 +225,13 @@ def test_fits_primary_beam_matches_model(tmp_path, rng, spectral):
     path = tmp_path / "pb.fits"
     fits.PrimaryHDU(data=data.astype(np.float32), header=w.to_header()).writeto(path)
     ra, dec = lm_to_radec(rng.uniform(-4e-3, 4e-3, 6), rng.uniform(-4e-3, 4e-3, 6), *VLA_CENTER)
-    got = uvstack(_tree(p=ds), _cat(ra, dec), primary_beam=str(path))
+    got = stack_uv(_tree(p=ds), _cat(ra, dec), primary_beam=str(path))
     if spectral:
-        want = uvstack(_tree(p=ds), _cat(ra, dec), primary_beam="gaussian")
+        want = stack_uv(_tree(p=ds), _cat(ra, dec), primary_beam="gaussian")
     else:  # one plane at the first channel used for every channel
         one = ds.isel(frequency=[0])
-        got = uvstack(_tree(p=one), _cat(ra, dec), primary_beam=str(path))
-        want = uvstack(_tree(p=one), _cat(ra, dec), primary_beam="gaussian")
+        got = stack_uv(_tree(p=one), _cat(ra, dec), primary_beam=str(path))
+        want = stack_uv(_tree(p=one), _cat(ra, dec), primary_beam="gaussian")
     att_got = np.asarray(got.positions["attenuation"])
     att_want = np.asarray(want.positions["attenuation"])
     np.testing.assert_allclose(att_got, att_want, rtol=2e-3, atol=1e-4)
@@ -240,23 +240,23 @@ def test_fits_primary_beam_matches_model(tmp_path, rng, spectral):
 
 def test_simulated_point_source_through_the_sim_stage():
     """Cross-stage conventions: xstack.sim (eq. 1, standard VLA beam, w-term) and uvstack
-    agree exactly on an off-centre noiseless point source (primary-beam corrected)."""
+    agree exactly on an off-center noiseless point source (primary-beam corrected)."""
     from xstack.sim.simulate import simulate_partitions
 
     scene = {
         "array": {"config": "vla.d"},
         "observation": {"date": "2014-01-01", "hour_angle": [-1.0, 1.0], "integration": 60.0,
                         "time_per_pointing": 1200.0},
-        "spectral": {"centre": 1.4e9, "bandwidth": 100e6, "channels": 4,
+        "spectral": {"center": 1.4e9, "bandwidth": 100e6, "channels": 4,
                      "polarizations": ["RR", "LL"]},
-        "pointings": {"mode": "single", "centre": ["3h49m10.99s", "-30d00m00s"]},
-        "effects": {"primary_beam": "standard", "w_term": True},
+        "pointings": {"mode": "single", "center": ["3h49m10.99s", "-30d00m00s"]},
+        "effects": {"primary_beam": "auto", "w_term": True},
         "populations": [{"name": "targets", "count": 1, "flux": {"kind": "fixed", "value": "1mJy"},
                          "positions": {"kind": "box", "size_arcsec": [1200, 1200]},
                          "shape": {"kind": "point"}}],
     }
     parts, cats = simulate_partitions(scene, seed=3)
-    res = uvstack(xr.DataTree.from_dict(parts), cats["targets"])
+    res = stack_uv(xr.DataTree.from_dict(parts), cats["targets"])
     assert res.positions["attenuation"][0, 0] < 0.99  # really attenuated
     assert res.flux_jy == pytest.approx(1e-3, rel=1e-6)
 
@@ -266,10 +266,10 @@ def test_nufft_engine_end_to_end(rng):
     ds = make_stack_partition(n_time=6, n_ant=6, n_chan=3, sigma=1.0, seed=14, extent_m=100.0,
                               telescope="ALMA", dish=12.0, freq0=100e9, pols=("XX", "YY"))
     ra, dec = lm_to_radec(rng.uniform(-1e-4, 1e-4, 30), rng.uniform(-1e-4, 1e-4, 30), *VLA_CENTER)
-    a = uvstack(_tree(p=ds), _cat(ra, dec), engine="nufft")
-    b = uvstack(_tree(p=ds), _cat(ra, dec), engine="numba")
+    a = stack_uv(_tree(p=ds), _cat(ra, dec), engine="nufft")
+    b = stack_uv(_tree(p=ds), _cat(ra, dec), engine="numba")
     assert a.flux_jy == pytest.approx(b.flux_jy, rel=1e-9, abs=1e-9 * b.flux_err_jy)
     big = make_stack_partition(n_time=4, n_ant=6, n_chan=2, sigma=1.0, extent_m=30000.0)
     ra2, dec2 = lm_to_radec([-4e-3, 4e-3], [4e-3, -4e-3], *VLA_CENTER)
     with pytest.raises(XstackError, match="nufft"):
-        uvstack(_tree(p=big), _cat(ra2, dec2), engine="nufft", primary_beam="none")
+        stack_uv(_tree(p=big), _cat(ra2, dec2), engine="nufft", primary_beam="none")

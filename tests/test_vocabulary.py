@@ -62,9 +62,9 @@ def test_pb_cutoff_default_has_one_home():
 
     from xstack.noise.estimate import estimate_noise
     from xstack.sim.scene import Effects
-    from xstack.uvstack.stack import uvstack
+    from xstack.uvstack.stack import stack_uv
 
-    for func in (uvstack, estimate_noise):
+    for func in (stack_uv, estimate_noise):
         assert inspect.signature(func).parameters["pb_cutoff"].default == DEFAULT_PB_CUTOFF
     assert Effects().pb_cutoff == DEFAULT_PB_CUTOFF
 

@@ -71,13 +71,13 @@ _API = {
     "preset_scene": "xstack.sim.presets:preset_scene",
     "simulate": "xstack.sim.simulate:simulate",
     # uv-stacking
-    "uvstack": "xstack.uvstack.stack:uvstack",
+    "stack_uv": "xstack.uvstack.stack:stack_uv",
     "uv_profile": "xstack.uvstack.stack:uv_profile",
     # imaging and image-stacking
     "make_image": "xstack.imaging.image:make_image",
     "clean": "xstack.imaging.clean:clean",
     "subtract": "xstack.imaging.subtract:subtract",
-    "imstack": "xstack.imstack.stack:imstack",
+    "stack_images": "xstack.imstack.stack:stack_images",
     # measuring
     "fit_uv": "xstack.fit.uvfit:fit_uv",
     "fit_image": "xstack.fit.imfit:fit_image",

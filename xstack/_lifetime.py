@@ -2,7 +2,7 @@
 
 A lazy dask array reads its chunks when it is computed, which may be long after the function
 that opened the store returned. A temporary store (e.g. the conversion of a MeasurementSet
-that ``xstack.uvstack`` reads) must therefore not be deleted while any lazy object built on it
+that ``xstack.stack_uv`` reads) must therefore not be deleted while any lazy object built on it
 exists. :func:`tie_lifetime` makes every dask-backed variable depend on an owner object that
 holds the temporary directory: the directory is removed only when the last graph that could
 read it is garbage-collected.

@@ -24,7 +24,7 @@ ignores a minority of outliers (RFI spikes, a few bad channels).
 
 With a single channel the differences are taken between neighbouring integrations
 (``V[t+1, c] - V[t, c]``) instead. They cancel the sky only where the fringe phase of the
-source changes little between integrations: a bright source far from the phase centre on
+source changes little between integrations: a bright source far from the phase center on
 long baselines rotates through many radians per integration and its flux then counts as
 noise (the estimate is too high, never too low). Channel differences are always preferred.
 

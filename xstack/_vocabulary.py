@@ -26,14 +26,17 @@ CUBE_FORMATS = ("zarr", "fits")
 
 # noise (xstack.noise.estimate)
 NOISE_METHODS = ("analytic", "mc", "random", "bootstrap")
-NOISE_ENGINES = ("auto", "antenna", "row")
+NOISE_ENGINES = ("auto", "antenna", "numba")
 NOISE_WEIGHTINGS = ("none", "pb", "column")
-NOISE_PRIMARY_BEAMS = ("auto", "airy", "gaussian", "none")
+#: primary-beam models by name: ``auto`` is the telescope's standard beam
+#: (:func:`xstack.beams.standard_beam`); uvstack and imstack also take a beam FITS image
+PRIMARY_BEAM_MODELS = ("auto", "airy", "gaussian", "none")
+NOISE_PRIMARY_BEAMS = PRIMARY_BEAM_MODELS
 
 # imaging (xstack.imaging)
 IMAGE_WEIGHTINGS = ("natural", "uniform", "briggs")
 CLEAN_ALGORITHMS = ("hogbom", "clark")
-SUBTRACT_PRIMARY_BEAMS = ("standard", "airy", "gaussian", "none")
+SUBTRACT_PRIMARY_BEAMS = PRIMARY_BEAM_MODELS
 
 # fitting (xstack.fit)
 FIT_MODELS = ("point", "gaussian")

@@ -326,7 +326,7 @@ def covered(attenuation: Any, cutoff: float) -> np.ndarray:
 def inside_field(beam: Any, theta: Any, frequencies: Any, cutoff: float | None = None) -> np.ndarray:
     """Whether directions lie inside a pointing: the one rule every stage uses.
 
-    A direction at angular distance ``theta`` from the pointing centre is inside when it lies
+    A direction at angular distance ``theta`` from the pointing center is inside when it lies
     inside the main lobe and the attenuation is ``A >= cutoff`` at the **highest frequency the
     data span** (the band edge, where the beam is narrowest). For a circular beam A falls
     with theta * nu inside the main lobe, so this is the same as "A >= cutoff in every
@@ -342,7 +342,7 @@ def inside_field(beam: Any, theta: Any, frequencies: Any, cutoff: float | None =
         ``beam(theta, frequency) -> A`` (theta in rad, frequency in Hz) for a sampled beam
         (a beam image).
     theta
-        Angular distances from the pointing centre, rad.
+        Angular distances from the pointing center, rad.
     frequencies
         Channel frequencies of the data, or the band (low, high), Hz; only the highest is
         used.

@@ -1,6 +1,6 @@
 """Sky geometry, unit parsing and catalogs shared by every stage.
 
-Conventions (``docs/conventions.md``): direction cosines relative to a phase centre
+Conventions (``docs/conventions.md``): direction cosines relative to a phase center
 (ra0, dec0) are, exactly,
 
     l = cos(dec) sin(ra - ra0)
@@ -29,11 +29,11 @@ SPEED_OF_LIGHT = 299_792_458.0  # m/s
 
 
 def radec_to_lmn(ra: Any, dec: Any, ra0: float, dec0: float) -> tuple[np.ndarray, ...]:
-    """Direction cosines (l, m, n) of (ra, dec) relative to the phase centre (ra0, dec0).
+    """Direction cosines (l, m, n) of (ra, dec) relative to the phase center (ra0, dec0).
 
     All angles in radians; arithmetic in float64. ``n - 1`` is returned as well, computed
     without cancellation (``-(l^2 + m^2) / (1 + n)``), since the w-term needs it to full
-    precision even for positions close to the phase centre.
+    precision even for positions close to the phase center.
 
     Returns
     -------

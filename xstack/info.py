@@ -2,11 +2,11 @@
 
 The facts CASA's ``listobs`` and ``imhead`` report, as one dictionary (``--json`` prints it):
 
-* MeasurementSet or store: telescope, fields and their phase centres, spectral windows,
+* MeasurementSet or store: telescope, fields and their phase centers, spectral windows,
   correlations, the time range and integration time, antennas and baselines (their longest
   and shortest length from the antenna positions), whether autocorrelations are present,
   the flagged fraction of the *real* cells, and the weights against the data's own scatter.
-* FITS image: size, cell, beam, units, frequency, phase and pointing centre, primary-beam
+* FITS image: size, cell, beam, units, frequency, phase and pointing center, primary-beam
   state (``XSPBCOR``, ``XSPBFILE``, ``XSPBCUT``), whether it is a mosaic.
 
 Real cells. A store holds a regular (time, baseline) grid; cells without an MS row are
@@ -245,7 +245,7 @@ def _spw(sid: int, freq: np.ndarray, width: np.ndarray, pols: list[str]) -> dict
             "last_channel_hz": float(freq[-1]) if freq.size else None,
             "channel_width_hz": float(np.median(width)) if width.size else None,
             "total_bandwidth_hz": float(edges_hi.max() - edges_lo.min()) if freq.size else 0.0,
-            "centre_hz": float((edges_hi.max() + edges_lo.min()) / 2) if freq.size else None,
+            "center_hz": float((edges_hi.max() + edges_lo.min()) / 2) if freq.size else None,
             "correlations": pols}
 
 
@@ -456,13 +456,13 @@ def info(path: str | os.PathLike, *, datacolumn: str = "DATA") -> dict[str, Any]
     -------
     dict
         ``kind`` (``"ms"``, ``"store"`` or ``"fits"``) and the facts of that kind (see
-        ``docs/info.md``): for data, ``fields`` (phase centres in degrees and sexagesimal,
+        ``docs/info.md``): for data, ``fields`` (phase centers in degrees and sexagesimal,
         ICRS), ``spectral_windows`` (Hz), ``time`` (UTC, seconds), ``antennas``,
         ``baselines`` (metres), ``correlations``, ``autocorrelations``,
         ``flagged_fraction`` (of the real cells), ``weights`` (``variance_ratio`` = measured
         variance / 1/WEIGHT, ``sigma_ratio`` its square root); for an image, ``size``,
         ``cell_arcsec``, ``beam``, ``bunit``, ``frequency_hz``, ``reference`` and
-        ``pointing`` centres, ``primary_beam``, ``mosaic``. ``warnings`` lists what was
+        ``pointing`` centers, ``primary_beam``, ``mosaic``. ``warnings`` lists what was
         warned about (each also issued as a :class:`UserWarning`).
 
     Raises

@@ -120,11 +120,11 @@ def new_partition(
     antenna_names, antenna_positions, dish_diameters
         Antenna table: names, ITRF positions (n, 3) in metres, dish diameters in metres.
     frequency, channel_width
-        Channel centre frequencies and widths, Hz.
+        Channel center frequencies and widths, Hz.
     polarization
         Correlation names, e.g. ``["XX", "YY"]`` or ``["RR", "RL", "LR", "LL"]``.
     phase_center
-        (ra, dec) of the phase centre, radians, ICRS.
+        (ra, dec) of the phase center, radians, ICRS.
     attrs
         Extra JSON-serialisable attributes (provenance, stacking options...).
     """

@@ -10,7 +10,7 @@ Bandwidth smearing
     depend on frequency.
 
 Time-average smearing
-    Earth rotation changes (u, v, w) at (hour angle rate ``omega``, phase-centre declination
+    Earth rotation changes (u, v, w) at (hour angle rate ``omega``, phase-center declination
     ``dec0``)::
 
         du/dt = omega (w cos dec0 - v sin dec0)
@@ -115,7 +115,7 @@ def delay_rates(uvw: Any, l: Any, m: Any, n_minus_1: Any, dec0: float) -> np.nda
     l, m, n_minus_1
         (npos,) direction cosines and ``n - 1`` (``None``: no w-term).
     dec0
-        Declination of the phase centre, radians.
+        Declination of the phase center, radians.
     """
     uvw = _as_rows(uvw)
     u, v, w = uvw[:, 0:1], uvw[:, 1:2], uvw[:, 2:3]
@@ -138,13 +138,13 @@ def smearing_factors(uvw: Any, frequency: Any, channel_width: Any, integration_t
     uvw
         (nrow, 3) baseline coordinates, metres.
     frequency, channel_width
-        (nchan,) channel centres and widths, Hz.
+        (nchan,) channel centers and widths, Hz.
     integration_time
         Integration (averaging) time, s.
     l, m, n_minus_1
         (npos,) direction cosines and ``n - 1`` (``None``: no w-term).
     dec0
-        Phase-centre declination, radians.
+        Phase-center declination, radians.
     bandwidth, time
         Which effects to include.
 
@@ -236,7 +236,7 @@ def mean_factors(uvw: Any, weight: Any, frequency: Any, channel_width: Any,
     l, m, n_minus_1
         (npos,) direction (``n_minus_1`` ``None``: no w-term).
     dec0
-        Phase-centre declination, radians.
+        Phase-center declination, radians.
     bandwidth, time
         Which effects to include (both ``False``: all ones).
 
@@ -290,7 +290,7 @@ def approximate_loss(baseline_m: float, offset_rad: float, frequency_hz: float,
     baseline_m
         Baseline length q, metres.
     offset_rad
-        Distance θ of the source from the phase centre, radians.
+        Distance θ of the source from the phase center, radians.
     frequency_hz, channel_width_hz
         Hz.
     integration_s

@@ -38,10 +38,10 @@ DEMO_SCENE: dict[str, Any] = {
     # on one day (+-0.5 h would put the last one on the next day)
     "observation": {"date": "2014-01-01", "hour_angle": [-0.51, 0.51], "integration": 60.0,
                     "time_per_pointing": 3600.0},
-    "spectral": {"centre": 1.4e9, "bandwidth": 128e6, "channels": 4,
+    "spectral": {"center": 1.4e9, "bandwidth": 128e6, "channels": 4,
                  "polarizations": ["RR", "LL"]},
     "pointings": {"mode": "single"},
-    "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.01}},
+    "effects": {"primary_beam": "auto", "w_term": True, "noise": {"sigma": 0.01}},
     "populations": [
         {"name": "bright", "count": 3, "flux": {"kind": "fixed", "value": "5mJy"},
          "positions": {"kind": "box", "size_arcsec": [200, 200]}},

@@ -29,7 +29,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="uv fit: bins for --binned and the --png uv-profile (30)")
     p.add_argument("--psf", help="image fit: dirty beam FITS (default: the stamp's PSF extension)")
     p.add_argument("--fit-radius", type=_types.angle_arcsec, metavar="ANGLE",
-                   help=f"image fit: use pixels within this radius of the centre "
+                   help=f"image fit: use pixels within this radius of the center "
                         f"({_types.ANGLE_HELP})")
     p.add_argument("--noise-correlation", choices=V.NOISE_CORRELATIONS, default="psf",
                    help="image fit: pixel-noise correlation used for the errors (psf)")

@@ -22,7 +22,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "dirty image) beside OUT.psf.fits, OUT.residual.fits, OUT.model.fits and "
                     "OUT.pb.fits (the image's primary beam, named in its header: XSPBFILE; "
                     "XSPBCOR says whether the image is corrected). Partitions with different "
-                    "phase centres (a mosaic) give a primary-beam corrected linear mosaic of "
+                    "phase centers (a mosaic) give a primary-beam corrected linear mosaic of "
                     "dirty images (no CLEAN) whose OUT.pb.fits is the mosaic's effective beam.")
     p.add_argument("data", help="input store (.zarr)")
     p.add_argument("out", help="output image (.fits)")
@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         n_components = 0
     # the beam first: the image and residual name it (XSPBFILE) and are written after it
     pb_name = names["pb"].name
-    result.write(names["pb"], result.pb, kind="pb", overwrite=args.overwrite)
+    result.write(names["pb"], result.primary_beam, kind="pb", overwrite=args.overwrite)
     result.write(names["psf"], result.psf, kind="psf", overwrite=args.overwrite)
     result.write(names["residual"], residual, kind="residual", overwrite=args.overwrite,
                  pb_file=pb_name)

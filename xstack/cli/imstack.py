@@ -18,7 +18,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "(any celestial WCS; mosaic pointings together) and stack them per pixel "
                     "(weighted mean or median, NaN off the image ignored). Writes OUT.fits "
                     "(stacked stamp, PSF and WEIGHTS extensions), OUT.cube.zarr (all stamps) "
-                    "and OUT.png. The flux is the stacked value at the centre pixel.",
+                    "and OUT.png. The flux is the stacked value at the center pixel.",
         epilog="example: xstack imstack field.fits targets.ecsv stack.fits --subpixel fourier --json")
     p.add_argument("inputs", nargs="+", metavar="IMAGE.fits ... CATALOG OUT.fits",
                    help="one or more images, then the catalog (ra, dec [deg], optional weight), "
@@ -34,7 +34,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "the paper)")
     p.add_argument("--psf", action="append", default=None, metavar="PSF.fits",
                    help="PSF image (once, or once per image; default X.psf.fits beside X.fits)")
-    p.add_argument("--pb", action="append", default=None, metavar="PB",
+    p.add_argument("--primary-beam", action="append", default=None, metavar="PB",
                    help="primary beam: airy|gaussian|vla|none or a PB FITS image (once, or once "
                         "per image; default: the beam file the image names (XSPBFILE, "
                         "X.pb.fits from xstack image), else the telescope's standard beam)")
@@ -79,7 +79,7 @@ def _corrected(values: list[str] | None) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     from xstack.cli import emit_json
-    from xstack.imstack.stack import imstack
+    from xstack.imstack.stack import stack_images
 
     if len(args.inputs) < 3:
         raise XstackError("give IMAGE.fits [IMAGE.fits ...] CATALOG OUT.fits")
@@ -87,14 +87,15 @@ def run(args: argparse.Namespace) -> int:
     if not out.lower().endswith(".fits"):
         raise XstackError(f"{out}: the output must be a .fits file name (got the arguments in "
                           "the wrong order?)")
-    result = imstack(images, catalog, stamp_size=args.stamp_size, method=args.method,
-                     weighting=args.weighting, subpixel=args.subpixel or False,
-                     pb=_one_or_list(args.pb), pbcor=args.pbcor, psf=_one_or_list(args.psf),
-                     image_corrected=_corrected(args.image_corrected),
-                     beam_mask_arcsec=args.mask_radius, filter_lowfreq=args.filter,
-                     skip_outside=args.skip_outside, out=out, cube_format=args.cube_format,
-                     plot=not args.no_png, overwrite=args.overwrite,
-                     progress=not args.no_progress and not args.json)
+    result = stack_images(images, catalog, stamp_size=args.stamp_size, method=args.method,
+                          weighting=args.weighting, subpixel=args.subpixel or False,
+                          primary_beam=_one_or_list(args.primary_beam), pbcor=args.pbcor,
+                          psf=_one_or_list(args.psf),
+                          image_corrected=_corrected(args.image_corrected),
+                          beam_mask_arcsec=args.mask_radius, filter_lowfreq=args.filter,
+                          skip_outside=args.skip_outside, out=out, cube_format=args.cube_format,
+                          plot=not args.no_png, overwrite=args.overwrite,
+                          progress=not args.no_progress and not args.json)
     summary = result.to_dict()
     if args.json:
         emit_json(summary)

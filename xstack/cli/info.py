@@ -10,10 +10,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "info", help="summary of a MeasurementSet, store or FITS image (like listobs/imhead)",
         description="What CASA's listobs and imhead tell. A MeasurementSet or store: fields and "
-                    "phase centres, spectral windows, time range and integration, antennas and "
+                    "phase centers, spectral windows, time range and integration, antennas and "
                     "baselines, correlations, the flagged fraction of the real cells (grid "
                     "padding is not data) and the weights against the data's own scatter. A "
-                    "FITS image: size, cell, beam, units, frequency, phase and pointing centre, "
+                    "FITS image: size, cell, beam, units, frequency, phase and pointing center, "
                     "primary-beam state, mosaic. See docs/info.md.")
     p.add_argument("path", metavar="MS|STORE|FITS", help="MeasurementSet, zarr store or FITS image")
     p.add_argument("--datacolumn", default="DATA",
@@ -94,7 +94,7 @@ def image_lines(d: dict[str, Any]) -> list[str]:
                    f"({d['projection']}, {d['frame']}), field {d['field_of_view_arcsec'][0]:.4g}\" x "
                    f"{d['field_of_view_arcsec'][1]:.4g}\"")
         r, p = d["reference"], d["pointing"]
-        out.append(f"centre     {r['ra_hms']} {r['dec_dms']} ({r['ra_deg']:.6f}, "
+        out.append(f"center     {r['ra_hms']} {r['dec_dms']} ({r['ra_deg']:.6f}, "
                    f"{r['dec_deg']:+.6f} deg)")
         out.append(f"pointing   {p['ra_hms']} {p['dec_dms']} (from {d['pointing_from']})")
     out.append(f"frequency  {_fmt_hz(d['frequency_hz'])}"

@@ -19,7 +19,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("model", help="component catalog or CLEAN model image (.fits)")
     p.add_argument("out", help="output residual store (.zarr)")
     p.add_argument("--primary-beam", choices=V.SUBTRACT_PRIMARY_BEAMS,
-                   default="standard",
+                   default="auto",
                    help="catalog models: primary beam applied to the components (default: the "
                         "telescope's standard beam)")
     p.add_argument("--autocorrelations", action="store_true",
@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from xstack.cli import emit_json
     from xstack.imaging.subtract import subtract
 
-    pb = None if args.primary_beam == "standard" else args.primary_beam
+    pb = args.primary_beam
     out = subtract(args.data, args.model, args.out, overwrite=args.overwrite,
                    progress=not args.no_progress, primary_beam=pb,
                    autocorrelations=args.autocorrelations)

@@ -18,7 +18,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "uvstack", help="uv-stack visibilities at the positions of a catalog",
         usage="xstack uvstack [options] DATA [DATA ...] CATALOG OUT.zarr",
         description="Phase-rotate every visibility to the catalog positions and average them "
-                    "(Lindroos et al. 2015, eq. 4): each pointing about its own phase centre, "
+                    "(Lindroos et al. 2015, eq. 4): each pointing about its own phase center, "
                     "primary-beam corrected, visibility weights scaled by the sum of the "
                     "position weights of the pointing. Writes the stacked store OUT.zarr, its "
                     "uv-profile (OUT_uvprofile.ecsv, OUT_uvprofile.png) and prints the stacked "
@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from xstack._atomic import atomic_output, check_output
     from xstack._inputs import Positions
     from xstack.cli import emit_json
-    from xstack.uvstack.stack import plot_uv_profile, uv_profile, uvstack
+    from xstack.uvstack.stack import plot_uv_profile, stack_uv, uv_profile
 
     if len(args.inputs) < 3:
         raise XstackError("need DATA... CATALOG OUT.zarr (at least three arguments)")
@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         pols = [p.strip() for p in pols.split(",") if p.strip()]
     progress = not args.no_progress
     t0 = time.perf_counter()
-    res = uvstack(data if len(data) > 1 else data[0], positions, weighting=args.weighting,
+    res = stack_uv(data if len(data) > 1 else data[0], positions, weighting=args.weighting,
                   primary_beam=args.primary_beam, pb_cutoff=args.pb_cutoff, uvmin=args.uvmin,
                   uvmax=args.uvmax, noise_image=args.noise_image, polarizations=pols,
                   engine=args.engine, out=out, smearing=args.smearing,

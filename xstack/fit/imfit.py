@@ -39,7 +39,7 @@ from xstack.fit.result import FitResult
 def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
     """Read a stacked stamp FITS (primary image, optional ``PSF`` extension).
 
-    Returns ``stamp``, ``psf`` (or None), ``pixel_arcsec`` (|dx|, |dy|), ``centre``
+    Returns ``stamp``, ``psf`` (or None), ``pixel_arcsec`` (|dx|, |dy|), ``center``
     (0-based (y, x) of the reference pixel = the stacking position) and ``pbcor`` (the
     stamp's ``STPBCOR``: True if its flux is primary-beam corrected, None if it says nothing).
     """
@@ -62,12 +62,12 @@ def read_stamp_fits(path: str | os.PathLike) -> dict[str, Any]:
         raise XstackError(f"{path}: the primary HDU is not a 2-D image (shape {stamp.shape})")
     wcs = WCS(header).celestial
     scales = np.abs(np.diag(wcs.pixel_scale_matrix)) * 3600.0
-    centre = (int(round(header.get("CRPIX2", stamp.shape[0] // 2 + 1))) - 1,
+    center = (int(round(header.get("CRPIX2", stamp.shape[0] // 2 + 1))) - 1,
               int(round(header.get("CRPIX1", stamp.shape[1] // 2 + 1))) - 1)
     pbcor = header.get("STPBCOR")
     return {"stamp": stamp, "psf": None if psf is None else np.squeeze(psf),
             "psf_smeared": smeared, "pbcor": None if pbcor is None else bool(pbcor),
-            "pixel_arcsec": (float(scales[0]), float(scales[1])), "centre": centre}
+            "pixel_arcsec": (float(scales[0]), float(scales[1])), "center": center}
 
 
 def read_psf(psf: Any, with_flag: bool = False) -> Any:
@@ -91,8 +91,8 @@ def read_psf(psf: Any, with_flag: bool = False) -> Any:
 class PsfConvolver:
     """Convolutions with the PSF on a padded grid aligned with the stamp."""
 
-    def __init__(self, psf: np.ndarray, shape: tuple[int, int], centre: tuple[int, int],
-                 pixel_arcsec: tuple[float, float], normalise: bool = True):
+    def __init__(self, psf: np.ndarray, shape: tuple[int, int], center: tuple[int, int],
+                 pixel_arcsec: tuple[float, float], normalize: bool = True):
         if psf.ndim != 2 or not np.all(np.isfinite(psf)):
             raise XstackError("the PSF must be a finite 2-D image")
         peak = np.unravel_index(np.argmax(psf), psf.shape)
@@ -100,7 +100,7 @@ class PsfConvolver:
         if not pmax > 0:
             raise XstackError("the PSF has no positive peak")
         self.peak = float(pmax)
-        if normalise:
+        if normalize:
             psf = psf / pmax
         ny, nx = shape
         # padded FFT grid: the PSF wholly, plus the stamp, without wrap-around
@@ -117,10 +117,10 @@ class PsfConvolver:
         self.f2 = fy[:, None] ** 2 + fx[None, :] ** 2   # (cycles/arcsec)^2
         self.N = (Ny, Nx)
         self.shape = shape
-        self.centre = centre
+        self.center = center
         # stamp pixel (y, x) <-> offset (y - cy, x - cx) from the source
-        self.oy = (np.arange(ny) - centre[0]) % Ny
-        self.ox = (np.arange(nx) - centre[1]) % Nx
+        self.oy = (np.arange(ny) - center[0]) % Ny
+        self.ox = (np.arange(nx) - center[1]) % Nx
 
     def model(self, a_arcsec2: float) -> tuple[np.ndarray, np.ndarray]:
         """(G*PSF) and d(G*PSF)/da on the stamp, for theta^2 = a (arcsec^2)."""
@@ -140,10 +140,10 @@ class PsfConvolver:
 
 
 def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float, float] | None = None,
-              centre: tuple[int, int] | None = None, model: str = "gaussian",
+              center: tuple[int, int] | None = None, model: str = "gaussian",
               fit_radius_arcsec: float | None = None, background: bool = True,
               noise_correlation: str = "psf", sigma_jy: float | None = None,
-              normalise_psf: bool | None = None) -> FitResult:
+              normalize_psf: bool | None = None) -> FitResult:
     """Fit a circular Gaussian convolved with the dirty beam (plus a constant) to a stamp.
 
     Parameters
@@ -153,23 +153,23 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         Jy/beam, ``PSF`` extension), or a 2-D array (then give ``psf`` and ``pixel_arcsec``).
     psf
         Dirty beam: FITS path or 2-D array on the stamp's pixel grid (any size; its peak is
-        taken as its centre). Default: the stamp file's ``PSF`` extension.
+        taken as its center). Default: the stamp file's ``PSF`` extension.
     pixel_arcsec
         Pixel size (|dx|, |dy|) or a single value, arcsec (arrays only).
-    centre
+    center
         0-based (y, x) pixel of the stacking position; default: the reference pixel of a
         FITS stamp, else ``(ny // 2, nx // 2)``.
     model
         ``"gaussian"`` (flux, FWHM) or ``"point"`` (flux only: S PSF + c).
     fit_radius_arcsec
-        Fit only pixels within this distance of the centre (default: the whole stamp).
+        Fit only pixels within this distance of the center (default: the whole stamp).
     background
         Fit the constant c (the paper's model); False fixes c = 0.
     noise_correlation
         ``"psf"`` (default), ``"residual"`` or ``"none"``; see the module notes.
     sigma_jy
         Pixel noise rms (Jy/beam) if known; default: estimated from the residuals.
-    normalise_psf
+    normalize_psf
         Divide the PSF by its peak. Default: yes, except for a PSF written by
         ``xstack imstack`` with nearest-pixel smear (``PSFSMEAR = T``, peak < 1), which is used
         as it is so that S is the true mean flux (see docs/imstack.md). The noise correlation
@@ -202,7 +202,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
             pb_convention = "corrected" if info["pbcor"] else "not corrected"
         img = info["stamp"]
         pix = info["pixel_arcsec"]
-        centre = info["centre"] if centre is None else centre
+        center = info["center"] if center is None else center
         if psf is None:
             psf = info["psf"]
             smeared = info["psf_smeared"]
@@ -221,13 +221,13 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     if img.ndim != 2:
         raise XstackError(f"the stamp must be a 2-D image, got shape {img.shape}")
     ny, nx = img.shape
-    centre = (ny // 2, nx // 2) if centre is None else (int(centre[0]), int(centre[1]))
+    center = (ny // 2, nx // 2) if center is None else (int(center[0]), int(center[1]))
     psf_arr, smeared_file = read_psf(psf, with_flag=True)
     smeared = smeared or smeared_file
-    normalise = (not smeared) if normalise_psf is None else bool(normalise_psf)
-    conv = PsfConvolver(psf_arr, img.shape, centre, pix, normalise=normalise)
+    normalize = (not smeared) if normalize_psf is None else bool(normalize_psf)
+    conv = PsfConvolver(psf_arr, img.shape, center, pix, normalize=normalize)
     yy, xx = np.mgrid[0:ny, 0:nx]
-    r = np.hypot((yy - centre[0]) * pix[1], (xx - centre[1]) * pix[0])
+    r = np.hypot((yy - center[0]) * pix[1], (xx - center[1]) * pix[0])
     use = np.isfinite(img)
     if fit_radius_arcsec is not None:
         use &= r <= float(fit_radius_arcsec)
@@ -306,7 +306,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     else:
         RJ = np.empty_like(J)
         # the noise correlation is the dirty beam with peak 1 (whatever the PSF's scale)
-        rho = conv.psf_ft / conv.peak if (rho_ft is None and not normalise) else rho_ft
+        rho = conv.psf_ft / conv.peak if (rho_ft is None and not normalize) else rho_ft
         for i in range(J.shape[1]):
             col = np.zeros(img.shape)
             col[use] = J[:, i]
@@ -332,9 +332,9 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     values = [S] + ([a_hat] if model == "gaussian" else []) + ([c] if background else [])
     extra = {"noise_correlation": noise_correlation, "sigma_jy_per_beam": float(np.sqrt(sigma2)),
              "primary_beam": pb_convention,
-             "psf_peak": conv.peak, "psf_normalised": normalise,
+             "psf_peak": conv.peak, "psf_normalized": normalize,
              "effective_dof": float(dof_eff), "condition_number": float(cond),
-             "pixel_arcsec": list(pix), "centre_pixel": list(centre)}
+             "pixel_arcsec": list(pix), "center_pixel": list(center)}
     if background:
         extra["background_jy_per_beam"] = float(c)
         extra["background_err_jy_per_beam"] = float(np.sqrt(cov[-1, -1]))

@@ -146,7 +146,7 @@ def plot_uv_fit(stacked: Any, result: FitResult, path: str | os.PathLike, *, bin
 def image_model(stamp_shape: tuple[int, int], psf: Any, result: FitResult) -> np.ndarray:
     """The fitted image model S (G_θ ⊗ PSF) + c (Jy/beam) on a stamp of ``stamp_shape``.
 
-    Uses the pixel size, centre and PSF normalisation recorded by
+    Uses the pixel size, center and PSF normalisation recorded by
     :func:`~xstack.fit.imfit.fit_image` in ``result.extra`` and the fitted θ² as fitted.
     """
     from xstack.fit.imfit import PsfConvolver, read_psf
@@ -155,9 +155,9 @@ def image_model(stamp_shape: tuple[int, int], psf: Any, result: FitResult) -> np
         raise XstackError(f"need an image-domain fit, got {result.domain!r}")
     ex = result.extra
     pix = (float(ex["pixel_arcsec"][0]), float(ex["pixel_arcsec"][1]))
-    centre = (int(ex["centre_pixel"][0]), int(ex["centre_pixel"][1]))
-    conv = PsfConvolver(read_psf(psf), tuple(stamp_shape), centre, pix,
-                      normalise=bool(ex.get("psf_normalised", True)))
+    center = (int(ex["center_pixel"][0]), int(ex["center_pixel"][1]))
+    conv = PsfConvolver(read_psf(psf), tuple(stamp_shape), center, pix,
+                      normalize=bool(ex.get("psf_normalized", True)))
     a = float(result.values[1]) if result.model == "gaussian" else 0.0
     base, _ = conv.model(a)
     return float(result.flux_jy) * base + float(ex.get("background_jy_per_beam", 0.0))
@@ -176,7 +176,7 @@ def _image_fit_figure(stamp: np.ndarray, model: np.ndarray, result: FitResult, *
     Figure = _figure_class()
     ny, nx = stamp.shape
     pix = result.extra["pixel_arcsec"]
-    cy, cx = result.extra["centre_pixel"]
+    cy, cx = result.extra["center_pixel"]
     sx = -1.0 if east_left else 1.0
     # pixel edges in arcsec offsets from the stacking position; east to the left for sky images
     extent = (sx * (-cx - 0.5) * pix[0], sx * (nx - cx - 0.5) * pix[0],
@@ -227,7 +227,7 @@ def plot_image_fit(stamp: Any, result: FitResult, path: str | os.PathLike, *, ps
         ``PSF`` extension) or a 2-D array (Jy/beam; then give ``psf``).
     result
         The image-domain :class:`~xstack.fit.result.FitResult` of
-        :func:`~xstack.fit.fit_image` (its ``extra`` holds pixel size, centre and PSF
+        :func:`~xstack.fit.fit_image` (its ``extra`` holds pixel size, center and PSF
         normalisation).
     path
         Output PNG; written atomically.

@@ -8,10 +8,11 @@ from typing import Any
 import numpy as np
 
 from xstack._json import finite_or_none
+from xstack._result import Result
 
 
-@dataclass
-class FitResult:
+@dataclass(kw_only=True)
+class FitResult(Result):
     """Fitted flux density and size of a stacked source.
 
     Attributes
@@ -83,3 +84,13 @@ class FitResult:
                 value = finite_or_none(value)
             out[key] = value
         return out
+
+    def table(self) -> Any:
+        """One row per fitted parameter: ``parameter``, ``value``, ``error`` (the square root of
+        the covariance's diagonal; fwhm2 in arcsec^2)."""
+        from astropy.table import Table
+
+        values = np.ravel(self.values).astype(np.float64)
+        cov = np.atleast_2d(self.covariance)
+        err = np.sqrt(np.diag(cov)) if cov.size else np.full(values.size, np.nan)
+        return Table({"parameter": list(self.parameters), "value": values, "error": err})

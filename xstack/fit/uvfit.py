@@ -8,7 +8,7 @@ own weight, inside the uv range) are fitted with
 
 by weighted non-linear least squares on the complex visibilities
 (:func:`scipy.optimize.least_squares`); the model is real (the source sits at the phase
-centre), so the imaginary parts enter only chi^2. Initial values come from the linear trick
+center), so the imaginary parts enter only chi^2. Initial values come from the linear trick
 (ln V is linear in q^2 for a Gaussian, fitted on binned averages). The size is fitted as
 ``theta^2`` so an unresolved source (theta -> 0) is an interior point of the fit: it gives
 ``fwhm^2`` consistent with 0 and a 95 % upper limit on the FWHM instead of a blow-up.
@@ -212,7 +212,7 @@ def fit_uv(stacked: Any, *, model: str = "point", uvmin: Any = None, uvmax: Any 
     stacked
         A stacked store (path), :class:`xarray.DataTree`, Dataset, mapping of Datasets, or an
         object with a ``stacked`` attribute (a ``StackResult``). The source is taken to be at
-        the phase centre.
+        the phase center.
     model
         ``"point"`` (flux only) or ``"gaussian"`` (flux and FWHM).
     uvmin, uvmax

@@ -14,12 +14,13 @@ from typing import Any
 
 import numpy as np
 
+from xstack._result import Result
 from xstack.errors import XstackError
 from xstack.imaging import kernels
 
 
-@dataclass
-class CleanResult:
+@dataclass(kw_only=True)
+class CleanResult(Result):
     """Output of :func:`clean` / :func:`clean_data`.
 
     Attributes
@@ -52,6 +53,15 @@ class CleanResult:
     n_major: int = 0
     history: list[dict[str, Any]] = field(default_factory=list)
 
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary: components, restoring beam (pixels), peak residual (Jy/beam),
+        convergence and the major-cycle history."""
+        return {"n_components": int(self.n_components),
+                "beam_pixels": [float(b) for b in self.beam_pixels],
+                "peak_residual_jy": float(self.peak_residual), "converged": bool(self.converged),
+                "n_major": int(self.n_major), "model_flux_jy": float(np.nansum(self.model)),
+                "history": list(self.history)}
+
 
 def restore(model: np.ndarray, residual: np.ndarray, beam_pixels: tuple[float, float, float]
             ) -> np.ndarray:
@@ -70,7 +80,7 @@ def restore(model: np.ndarray, residual: np.ndarray, beam_pixels: tuple[float, f
 
 
 def psf_sidelobe(psf: np.ndarray) -> float:
-    """Largest |PSF| outside the main lobe (connected region above 0.35 around the centre)."""
+    """Largest |PSF| outside the main lobe (connected region above 0.35 around the center)."""
     from scipy import ndimage
 
     ny, nx = psf.shape
@@ -83,7 +93,7 @@ def psf_sidelobe(psf: np.ndarray) -> float:
 
 
 def _convolve_psf(delta: np.ndarray, psf: np.ndarray) -> np.ndarray:
-    """Sum of PSFs centred on ``delta``'s components (exactly what Högbom subtracts)."""
+    """Sum of PSFs centered on ``delta``'s components (exactly what Högbom subtracts)."""
     from scipy.signal import fftconvolve
 
     ny, nx = delta.shape
@@ -95,7 +105,7 @@ def _convolve_psf(delta: np.ndarray, psf: np.ndarray) -> np.ndarray:
     y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
     full = fftconvolve(delta[y0:y1, x0:x1], psf, mode="full")
     out = np.zeros_like(delta)
-    # full[Y, X] has the PSF centre of component (y0, x0) at (pcy, pcx)
+    # full[Y, X] has the PSF center of component (y0, x0) at (pcy, pcx)
     oy, ox = pcy - y0, pcx - x0
     ys0, ys1 = max(0, -oy), min(ny, full.shape[0] - oy)
     xs0, xs1 = max(0, -ox), min(nx, full.shape[1] - ox)

@@ -5,8 +5,8 @@ Layout written by xstack (``write_image``)::
     NAXIS  = 4      data shape (1, 1, ny, nx), float32
     CTYPE1 = 'RA---SIN'  CDELT1 = -cell/3600 (deg; RA increases to the left / east)
     CTYPE2 = 'DEC--SIN'  CDELT2 = +cell/3600
-    CRPIX1 = nx // 2 + 1,  CRPIX2 = ny // 2 + 1   (1-based: the phase centre pixel)
-    CRVAL1, CRVAL2 = phase centre (deg, ICRS; RADESYS = 'ICRS')
+    CRPIX1 = nx // 2 + 1,  CRPIX2 = ny // 2 + 1   (1-based: the phase center pixel)
+    CRVAL1, CRVAL2 = phase center (deg, ICRS; RADESYS = 'ICRS')
     LONPOLE = 180 (the default except at CRVAL2 = +90, where it keeps the orientation)
     CTYPE3 = 'FREQ'   (CRVAL3 = weighted mean frequency, Hz; degenerate)
     CTYPE4 = 'STOKES' (CRVAL4 = 1 = I; degenerate)
@@ -75,7 +75,7 @@ def make_header(ny: int, nx: int, cell_arcsec: float, phase_center: tuple[float,
     h["CRPIX2"] = float(ny // 2 + 1)
     h["CUNIT2"] = "deg"
     # FITS defaults LONPOLE to 0 (not 180) when CRVAL2 is exactly +90, which would flip an
-    # image centred on the north pole; 180 keeps the l, m orientation of every other centre
+    # image centered on the north pole; 180 keeps the l, m orientation of every other center
     h["LONPOLE"] = 180.0
     h["CTYPE3"] = "FREQ"
     h["CRVAL3"] = float(frequency) if frequency else 1.0
@@ -218,7 +218,7 @@ def beam_from_header(header: fits.Header) -> tuple[float, float, float] | None:
 
 
 def grid_of(header: fits.Header) -> dict[str, Any]:
-    """Geometry of an xstack-style SIN image: shape, cell (arcsec), centre (rad), ref pixel.
+    """Geometry of an xstack-style SIN image: shape, cell (arcsec), center (rad), ref pixel.
 
     Raises
     ------

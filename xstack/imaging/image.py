@@ -3,13 +3,13 @@
 Conventions (``docs/imaging.md``):
 
 * Image arrays are FITS-ordered ``[y, x]``: x is RA (increasing to the *left*), y is Dec; the
-  phase centre sits at pixel ``(ny // 2, nx // 2)`` (0-based), the WCS reference pixel.
+  phase center sits at pixel ``(ny // 2, nx // 2)`` (0-based), the WCS reference pixel.
 * The visibility sign is the project's (paper eq. 1): V = S exp(+2 pi i (u l + v m + w (n-1))/lambda).
   ducc0's ``wgridder.experimental`` uses the opposite (u, v) orientation: with our sign its
   first image axis is -l and its second is m when ``flip_v=True`` (``flip_w=False``). This is
   pinned by tests against a direct Fourier sum with w-terms.
 * No division by n: a model-image pixel is the integrated flux density of a point source at
-  its centre, so prediction reproduces eq. 1 and imaging is its exact adjoint.
+  its center, so prediction reproduces eq. 1 and imaging is its exact adjoint.
 * Stokes I = parallel hands (XX, YY or RR, LL, or I), each visibility with its own weight:
   the dirty image is ``sum_k w_k Re[V_k e^{-i phi_k}] / sum_k w_k`` over every unflagged
   parallel-hand visibility of every channel (multi-frequency synthesis), so the PSF peaks at 1.
@@ -35,6 +35,7 @@ from astropy.io import fits
 from astropy.wcs import WCS
 
 from xstack import _vocabulary
+from xstack._result import Result
 from xstack._select import PARALLEL_HANDS, sky_correlations
 from xstack.beams import BAND_TOP_KEY
 from xstack.coords import angular_separation
@@ -55,8 +56,8 @@ _ARCSEC = math.pi / (180.0 * 3600.0)
 
 
 # --------------------------------------------------------------------------- results
-@dataclass
-class ImageResult:
+@dataclass(kw_only=True)
+class ImageResult(Result):
     """A dirty (or restored) image with its PSF and metadata.
 
     Attributes
@@ -77,7 +78,7 @@ class ImageResult:
         Sum of imaging weights over every gridded visibility (normalisation).
     frequency
         Weighted mean frequency, Hz (the FREQ axis value).
-    pb
+    primary_beam
         (ny, nx) the image's primary beam A (peak 1, dimensionless): the model beam's main
         lobe at ``frequency`` (single pointing) or the normalised effective beam of a linear
         mosaic. It travels with the image as ``X.pb.fits`` (:meth:`write_with_pb`), named in
@@ -95,12 +96,29 @@ class ImageResult:
     cell_arcsec: float = 0.0
     weighting: str = "natural"
     robust: float = 0.0
-    pb: np.ndarray | None = None
+    primary_beam: np.ndarray | None = None
     n_visibilities: int = 0
     partitions: tuple[str, ...] = ()
     telescope: str = ""
     bandwidth: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary: shape, cell (arcsec), beam (arcsec, deg), frequency (Hz),
+        phase center (deg), weighting, visibilities, primary-beam state, image rms and peak
+        (Jy/beam, finite pixels)."""
+        finite = self.image[np.isfinite(self.image)]
+        return {"shape": list(self.image.shape), "cell_arcsec": float(self.cell_arcsec),
+                "beam_arcsec": [float(self.beam[0]), float(self.beam[1])],
+                "beam_pa_deg": float(self.beam[2]), "frequency_hz": float(self.frequency),
+                "bandwidth_hz": float(self.bandwidth),
+                "phase_center_deg": [math.degrees(float(x)) for x in self.phase_center],
+                "weighting": self.weighting, "robust": float(self.robust),
+                "n_visibilities": int(self.n_visibilities), "partitions": list(self.partitions),
+                "telescope": self.telescope,
+                "pbcor": bool(self.header.get(PBCOR_KEY, False)),
+                "rms_jy": float(np.std(finite)) if finite.size else None,
+                "peak_jy": float(np.max(finite)) if finite.size else None}
 
     def header_for(self, kind: str = "image") -> fits.Header:
         """FITS header for ``kind`` in image | residual | psf | model | pb.
@@ -139,12 +157,12 @@ class ImageResult:
         """
         from xstack._atomic import check_output
 
-        if self.pb is None:
+        if self.primary_beam is None:
             raise XstackError("this image has no primary beam to write")
         pb_path = pb_path_for(path)
         for p in (pb_path, Path(path)):  # refuse before writing either
             check_output(p, overwrite)
-        self.write(pb_path, self.pb, kind="pb", overwrite=overwrite)
+        self.write(pb_path, self.primary_beam, kind="pb", overwrite=overwrite)
         out = self.write(path, data, kind=kind, overwrite=overwrite, pb_file=pb_path.name)
         return {"image": out, "pb": pb_path}
 
@@ -154,7 +172,7 @@ def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, 
                       allow_mosaic: bool = False) -> list[tuple[str, xr.Dataset]]:
     """Partitions of ``data`` whose names match ``partitions`` (names or glob patterns).
 
-    Unless ``allow_mosaic``, all selected partitions must share one phase centre (one
+    Unless ``allow_mosaic``, all selected partitions must share one phase center (one
     pointing): CLEAN's major cycles work on a single pointing.
     """
     from xstack._inputs import partitions as as_partitions
@@ -169,7 +187,7 @@ def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, 
         parts = chosen
     if not allow_mosaic and len(group_pointings(parts)) > 1:
         raise XstackError(
-            f"the selected partitions have {len(group_pointings(parts))} different phase centres "
+            f"the selected partitions have {len(group_pointings(parts))} different phase centers "
             "(a mosaic): CLEAN works on one pointing at a time (choose one with partitions=); "
             "a dirty linear mosaic of all pointings is made without niter=",
             option=("partitions", "niter"))
@@ -178,7 +196,7 @@ def select_partitions(data: Any, partitions: str | Sequence[str] | None = None, 
 
 def group_pointings(parts: Sequence[tuple[str, xr.Dataset]]
                     ) -> list[tuple[tuple[float, float], list[tuple[str, xr.Dataset]]]]:
-    """Partitions grouped by phase centre (within 1 mas), in order of first appearance.
+    """Partitions grouped by phase center (within 1 mas), in order of first appearance.
 
     Returns
     -------
@@ -187,8 +205,8 @@ def group_pointings(parts: Sequence[tuple[str, xr.Dataset]]
     groups: list[tuple[tuple[float, float], list[tuple[str, xr.Dataset]]]] = []
     for name, ds in parts:
         ra, dec = (float(x) for x in ds.attrs["phase_center"])
-        for centre, members in groups:
-            if angular_separation(centre[0], centre[1], ra, dec) <= 1e-3 * _ARCSEC:
+        for center, members in groups:
+            if angular_separation(center[0], center[1], ra, dec) <= 1e-3 * _ARCSEC:
                 members.append((name, ds))
                 break
         else:
@@ -212,11 +230,11 @@ def uvw_rotation(from_center: tuple[float, float], to_center: tuple[float, float
 def rephase(uvw: np.ndarray, vis: np.ndarray | None, frequency: np.ndarray,
             from_center: tuple[float, float], to_center: tuple[float, float]
             ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Refer (R, 3) uvw and (R, nchan) visibilities to a new phase centre, exactly.
+    """Refer (R, 3) uvw and (R, nchan) visibilities to a new phase center, exactly.
 
     V' = V exp(+2 pi i (w - w') / lambda), uvw' = R uvw: a source then appears as
     S exp(+2 pi i (u' l' + v' m' + w' (n' - 1)) / lambda) with (l', m', n') relative to the
-    new centre, so the gridder images directly on the new centre's SIN grid.
+    new center, so the gridder images directly on the new center's SIN grid.
     """
     from xstack.coords import SPEED_OF_LIGHT
 
@@ -341,17 +359,17 @@ def predict(model_image: np.ndarray, wcs_or_cell: WCS | float, uvw: np.ndarray, 
     """Visibilities of a model image (ducc0 ``dirty2vis``): the adjoint of imaging.
 
     ``V(u, v, w) = sum_pix M[y, x] exp(+2 pi i (u l + v m + w (n-1)) / lambda)`` (eq. 1 with
-    each pixel a point source of integrated flux M at the pixel centre; no 1/n).
+    each pixel a point source of integrated flux M at the pixel center; no 1/n).
 
     Parameters
     ----------
     model_image
-        (ny, nx) Jy/pixel, FITS order, phase centre at pixel (ny // 2, nx // 2).
+        (ny, nx) Jy/pixel, FITS order, phase center at pixel (ny // 2, nx // 2).
     wcs_or_cell
         Pixel size in arcsec, or the image's WCS (SIN, square pixels, reference pixel at the
-        image centre).
+        image center).
     uvw
-        (..., 3) metres, relative to the image's phase centre.
+        (..., 3) metres, relative to the image's phase center.
     frequency
         (nchan,) Hz.
 
@@ -397,7 +415,7 @@ def _cell_from_wcs(wcs: WCS, ny: int, nx: int) -> float:
         raise XstackError("model image pixels are not square")
     crpix = w.wcs.crpix
     if abs(crpix[0] - (nx // 2 + 1)) > 1e-6 or abs(crpix[1] - (ny // 2 + 1)) > 1e-6:
-        raise XstackError(f"model image reference pixel {tuple(crpix)} is not its centre "
+        raise XstackError(f"model image reference pixel {tuple(crpix)} is not its center "
                           f"({nx // 2 + 1}, {ny // 2 + 1}); the grid does not match")
     return cell
 
@@ -523,9 +541,9 @@ class Imager:
         self.weighting, self.robust = weighting, float(robust)
         self.wterm, self.epsilon, self.nthreads = bool(wterm), float(epsilon), int(nthreads)
         self.progress = progress
-        #: the data's phase centre (the pointing: primary-beam centre)
+        #: the data's phase center (the pointing: primary-beam center)
         self.data_center = tuple(float(x) for x in self.parts[0][1].attrs["phase_center"])
-        #: the image's centre (reference pixel); visibilities are rephased to it if it differs
+        #: the image's center (reference pixel); visibilities are rephased to it if it differs
         self.phase_center = self.data_center if image_center is None else \
             (float(image_center[0]), float(image_center[1]))
         self._shift = angular_separation(*self.data_center, *self.phase_center) > 1e-3 * _ARCSEC
@@ -703,7 +721,7 @@ class Imager:
             image=image, psf=psf, wcs=celestial_wcs(header), beam=beam, header=header,
             sum_weights=stats["sum_weights"], frequency=stats["frequency"],
             phase_center=self.phase_center, cell_arcsec=self.cell_arcsec,
-            weighting=self.weighting, robust=self.robust, pb=pb,
+            weighting=self.weighting, robust=self.robust, primary_beam=pb,
             n_visibilities=stats["n_visibilities"], partitions=tuple(n for n, _ in self.parts),
             telescope=telescope, bandwidth=stats.get("bandwidth", 0.0), extra=extra)
 
@@ -716,8 +734,8 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
                autocorrelations: bool = False) -> ImageResult:
     """Dirty image and PSF (Stokes I, multi-frequency synthesis) of a store.
 
-    Partitions that share a phase centre (e.g. several spectral windows of one pointing) are
-    imaged jointly. Partitions with different phase centres (a mosaic) give a linear mosaic
+    Partitions that share a phase center (e.g. several spectral windows of one pointing) are
+    imaged jointly. Partitions with different phase centers (a mosaic) give a linear mosaic
     (:func:`make_mosaic`).
 
     Parameters
@@ -750,7 +768,7 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     progress
         Progress bar on stderr.
     mosaic_center
-        (ra, dec) radians of a mosaic's image centre (default: the mean direction of the
+        (ra, dec) radians of a mosaic's image center (default: the mean direction of the
         pointings). Ignored for a single pointing.
     pb_cutoff
         Mosaic only: pixels where no pointing's primary beam reaches this power are NaN
@@ -775,11 +793,11 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     return imager.result(stats["dirty"], stats["psf"], stats, pbcor=pbcor)
 
 
-def mean_direction(centres: Sequence[tuple[float, float]]) -> tuple[float, float]:
-    """(ra, dec) radians of the normalised mean unit vector of ``centres`` (radians)."""
+def mean_direction(centers: Sequence[tuple[float, float]]) -> tuple[float, float]:
+    """(ra, dec) radians of the normalised mean unit vector of ``centers`` (radians)."""
     from xstack.coords import mean_direction as _mean
 
-    c = np.asarray(centres, dtype=np.float64)
+    c = np.asarray(centers, dtype=np.float64)
     out = _mean(c[:, 0], c[:, 1])
     if out is None:
         raise XstackError("the pointings have no mean direction; give mosaic_center")
@@ -795,9 +813,9 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
                 autocorrelations: bool = False) -> ImageResult:
     """Linear mosaic of the pointings of a store on one SIN grid (primary-beam corrected).
 
-    Each pointing p (the partitions sharing a phase centre) is imaged on the common grid,
-    its visibilities rephased to the mosaic centre with rotated uvw (exact, so the grid is a
-    true SIN projection about the centre for any mosaic size). With D_p its normalised dirty
+    Each pointing p (the partitions sharing a phase center) is imaged on the common grid,
+    its visibilities rephased to the mosaic center with rotated uvw (exact, so the grid is a
+    true SIN projection about the center for any mosaic size). With D_p its normalised dirty
     image, A_p its primary-beam power at the pixel and W_p = 1 / sigma_p^2 its image noise
     weight::
 
@@ -878,14 +896,14 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
              "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0,
              "uv_moments": moments / total_w}
     psf = psf / total_w
-    # the header and beam come from the last imager (same grid and centre for every pointing)
+    # the header and beam come from the last imager (same grid and center for every pointing)
     imager.parts = parts
     res = imager.result(image, psf, stats, pbcor=False)
     res.header[PBCOR_KEY] = True
     res.header["XSMOSAIC"] = (len(pointings), "linear mosaic of this many pointings")
     res.header[PBCUT_KEY] = (cutoff, "primary-beam cutoff (coverage: pb >= cutoff)")
     res.header["XSPBNORM"] = (pb_norm, "absolute effective beam = pb * XSPBNORM")
-    res.pb = pb
+    res.primary_beam = pb
     res.partitions = tuple(n for n, _ in parts)
     res.extra.update({"uncorrected": flat, "pointings": pointings, "pb_cutoff": cutoff})
     return res

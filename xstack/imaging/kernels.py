@@ -2,7 +2,7 @@
 
 Image arrays are in FITS order ``image[y, x]`` with x the RA axis (pixel index increasing
 towards the *west*, i.e. RA increasing to the left as on the sky) and y the Dec axis
-(increasing to the north). The reference pixel (phase centre) is ``(y, x) = (ny // 2, nx // 2)``
+(increasing to the north). The reference pixel (phase center) is ``(y, x) = (ny // 2, nx // 2)``
 (0-based), so a pixel's direction cosines are::
 
     l = -(x - nx // 2) * cell,    m = (y - ny // 2) * cell      (cell in radians)
@@ -13,7 +13,7 @@ The visibility convention is the project's (``docs/conventions.md``, paper eq. 1
 
 so the matched (dirty) image is ``I(l, m) = sum_k w_k Re[V_k exp(-2 pi i (...))] / sum_k w_k``.
 We do not divide by n anywhere: a pixel value of the model image is the integrated flux
-density of a point source at the pixel centre.
+density of a point source at the pixel center.
 """
 
 from __future__ import annotations
@@ -190,13 +190,13 @@ def imaging_weights(weight: np.ndarray, density: np.ndarray, weighting: str,
 
 # --------------------------------------------------------------------------- beams
 def gaussian_image(ny: int, nx: int, major_pix: float, minor_pix: float, pa_deg: float,
-                   centre: tuple[float, float] | None = None) -> np.ndarray:
+                   center: tuple[float, float] | None = None) -> np.ndarray:
     """Peak-1 elliptical Gaussian (FWHM in pixels, PA east of north) in FITS pixel order.
 
     North is +y and east is -x (RA increases to the left), so the major axis points along
     (dx, dy) = (-sin PA, cos PA).
     """
-    cy, cx = centre if centre is not None else (ny // 2, nx // 2)
+    cy, cx = center if center is not None else (ny // 2, nx // 2)
     y = np.arange(ny, dtype=np.float64)[:, None] - cy
     x = np.arange(nx, dtype=np.float64)[None, :] - cx
     pa = math.radians(pa_deg)
@@ -208,7 +208,7 @@ def gaussian_image(ny: int, nx: int, major_pix: float, minor_pix: float, pa_deg:
 def fit_psf_beam(psf: np.ndarray) -> tuple[float, float, float]:
     """Fit an elliptical Gaussian to the PSF main lobe.
 
-    The main lobe is the connected region above 35 % of the peak around the centre pixel.
+    The main lobe is the connected region above 35 % of the peak around the center pixel.
 
     Returns
     -------
@@ -223,7 +223,7 @@ def fit_psf_beam(psf: np.ndarray) -> tuple[float, float, float]:
     cy, cx = ny // 2, nx // 2
     peak = psf[cy, cx]
     if not np.isfinite(peak) or peak <= 0:
-        raise ValueError("PSF has no positive peak at the centre")
+        raise ValueError("PSF has no positive peak at the center")
     lobe, _ = ndimage.label(psf / peak > 0.35)
     sel = lobe == lobe[cy, cx]
     ys, xs = np.nonzero(sel)
@@ -286,7 +286,7 @@ def hogbom(res: np.ndarray, psf: np.ndarray, model: np.ndarray, mask: np.ndarray
            gain: float, threshold: float, niter: int) -> int:
     """Högbom CLEAN in place: ``res`` and ``model`` are updated; returns the iterations done.
 
-    The PSF centre ``(ny_psf // 2, nx_psf // 2)`` is shifted onto each component; the part
+    The PSF center ``(ny_psf // 2, nx_psf // 2)`` is shifted onto each component; the part
     of the shifted PSF that falls outside the residual is dropped. Stops after ``niter``
     components or when the masked |residual| peak is below ``threshold``.
     """

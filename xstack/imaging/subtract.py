@@ -6,9 +6,9 @@
   ``dec``, ``flux`` (Jy, integrated) and optional ``fwhm_arcsec`` (circular Gaussian FWHM):
   predicted exactly with the paper's equation 1 (float64 phases, w-term, Gaussian factor),
   each source attenuated by the telescope's standard primary beam
-  (:func:`xstack.beams.standard_beam`) at its distance from the partition's phase centre
-  (taken as the pointing centre), per channel; or
-* a **CLEAN model image** (FITS, Jy/pixel, SIN grid centred on the data's phase centre, as
+  (:func:`xstack.beams.standard_beam`) at its distance from the partition's phase center
+  (taken as the pointing center), per channel; or
+* a **CLEAN model image** (FITS, Jy/pixel, SIN grid centered on the data's phase center, as
   ``xstack image`` writes ``OUT.model.fits``): predicted with ducc0 ``dirty2vis``. It is an
   apparent-flux model (made from the un-corrected image), so no primary beam is applied.
 
@@ -82,7 +82,7 @@ def _load_image(model: Any) -> dict[str, Any]:
         raise XstackError(f"{model}: model image must have even sizes >= 32")
     cx, cy = grid["crpix"]
     if abs(cx - (grid["nx"] // 2 + 1)) > 1e-6 or abs(cy - (grid["ny"] // 2 + 1)) > 1e-6:
-        raise XstackError(f"{model}: reference pixel ({cx}, {cy}) is not the image centre "
+        raise XstackError(f"{model}: reference pixel ({cx}, {cy}) is not the image center "
                           f"({grid['nx'] // 2 + 1}, {grid['ny'] // 2 + 1}); grid does not match")
     if not np.all(np.isfinite(data)):
         raise XstackError(f"{model}: model image has non-finite pixels")
@@ -125,7 +125,7 @@ def _subtract_block(vis: np.ndarray, model: np.ndarray, pols: list[int]) -> np.n
 
 
 def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool = False,
-             progress: bool = False, epsilon: float = 1e-7, primary_beam: str | None = None,
+             progress: bool = False, epsilon: float = 1e-7, primary_beam: str | None = "auto",
              autocorrelations: bool = False) -> Path:
     """Subtract a model from every partition of a store; write the residual store.
 
@@ -137,7 +137,7 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     model
         Component catalog (path or astropy Table; columns ra, dec, flux [Jy], optional
         fwhm_arcsec) or a CLEAN model FITS image (Jy/pixel) on a SIN grid whose reference
-        pixel is the image centre and whose centre is the data's phase centre.
+        pixel is the image center and whose center is the data's phase center.
     out
         Output ``.zarr`` store (same schema and partitions; VISIBILITY replaced).
     overwrite
@@ -147,8 +147,8 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     epsilon
         ducc0 accuracy for model images.
     primary_beam
-        Catalog models only: ``None`` (the telescope's standard beam), ``"none"`` (no
-        attenuation), ``"airy"`` or ``"gaussian"``.
+        Catalog models only: ``"auto"`` (default; also ``None``: the telescope's standard
+        beam), ``"none"`` (no attenuation), ``"airy"`` or ``"gaussian"``.
     autocorrelations
         Subtract the model from autocorrelation baselines too. Off by default: they hold an
         antenna's system power, not the sky, and are copied unchanged.
@@ -156,7 +156,7 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
     Raises
     ------
     XstackError
-        Bad model (missing columns, grid not matching the phase centre, Jy/beam units...);
+        Bad model (missing columns, grid not matching the phase center, Jy/beam units...);
         checked for every partition before anything is written.
     """
     import dask.array as da
@@ -197,7 +197,8 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
             l, m, _, n1 = radec_to_lmn(spec["ra"], spec["dec"], ra0, dec0)
             sep = angular_separation(ra0, dec0, spec["ra"], spec["dec"])
             dish = dish_diameter(ds)
-            beam = standard_beam(str(ds.attrs.get("telescope_name", "")), dish, model=primary_beam)
+            model = None if primary_beam in (None, "auto") else primary_beam
+            beam = standard_beam(str(ds.attrs.get("telescope_name", "")), dish, model=model)
             att = beam(sep[:, None], freq[None, :])
             # sources behind the sky (n < 0) or outside the beam's main lobe contribute nothing
             keep = (np.hypot(l, m) < 1.0) & np.any(att > 0, axis=1)
@@ -209,7 +210,7 @@ def subtract(data: Any, model: Any, out: str | os.PathLike, *, overwrite: bool =
             offset = angular_separation(ra0, dec0, *spec["center"])
             if offset > 1e-3 * spec["cell_arcsec"] * _ARCSEC:
                 raise XstackError(
-                    f"model image centre is {offset / _ARCSEC:.3f} arcsec from the phase centre of "
+                    f"model image center is {offset / _ARCSEC:.3f} arcsec from the phase center of "
                     f"{name}: the grid does not match the data (image that partition's pointing)")
             kwargs = dict(freq=freq, pols=pols, image=spec["data"], cell_arcsec=spec["cell_arcsec"],
                           epsilon=epsilon)

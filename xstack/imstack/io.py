@@ -45,8 +45,8 @@ class ImageInfo:
     telescope
         TELESCOP, or None.
     pointing_deg
-        (ra, dec) of the primary-beam centre: OBSRA/OBSDEC if present, else the reference
-        value of the WCS (the phase centre for xstack and CASA images).
+        (ra, dec) of the primary-beam center: OBSRA/OBSDEC if present, else the reference
+        value of the WCS (the phase center for xstack and CASA images).
     bunit
         BUNIT ("" if absent).
     path
@@ -233,7 +233,7 @@ def output_paths(out: str | os.PathLike, cube_format: str = "zarr") -> dict[str,
 
 
 def stamp_header(ra0: float, dec0: float, size: int, pixel_matrix_deg: np.ndarray) -> fits.Header:
-    """SIN WCS of a stacked stamp: reference pixel at the stamp centre, at (ra0, dec0) deg.
+    """SIN WCS of a stacked stamp: reference pixel at the stamp center, at (ra0, dec0) deg.
 
     The reference position is nominal (the mean stacking position): what matters is that
     offsets from CRPIX are the stacked offsets from the stacking positions, in the pixel
@@ -262,11 +262,11 @@ def write_fits_atomic(hdul: fits.HDUList, tmp: Path) -> None:
 
 
 def read_stack_fits(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a stacked stamp written by :func:`xstack.imstack.stack.imstack`.
+    """Read a stacked stamp written by :func:`xstack.imstack.stack.stack_images`.
 
     Returns a dict with ``stamp`` (2-D float64), ``psf`` (2-D or None), ``weights`` (2-D or
     None), ``header`` (primary header), ``pixel_arcsec`` (|x|, |y| pixel sizes) and
-    ``centre`` (0-based (y, x) index of the stacking position).
+    ``center`` (0-based (y, x) index of the stacking position).
     """
     path = Path(path)
     if not path.exists():
@@ -280,7 +280,7 @@ def read_stack_fits(path: str | os.PathLike) -> dict[str, Any]:
     scales = np.abs(np.diag(wcs.pixel_scale_matrix)) * 3600.0
     return {"stamp": stamp, "psf": psf, "weights": wts, "header": header,
             "pixel_arcsec": (float(scales[0]), float(scales[1])),
-            "centre": (int(round(header["CRPIX2"])) - 1, int(round(header["CRPIX1"])) - 1)}
+            "center": (int(round(header["CRPIX2"])) - 1, int(round(header["CRPIX1"])) - 1)}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -300,7 +300,7 @@ class BeamConvention:
         image says nothing: used as is).
     beam_from
         Where A comes from: ``"option: ..."``, ``"beam file ..."``, ``"in-memory beam"``,
-        ``"model ... centred on (ra, dec)"``, ``"none (A = 1)"`` or ``"unknown"``.
+        ``"model ... centered on (ra, dec)"``, ``"none (A = 1)"`` or ``"unknown"``.
     cutoff
         Positions with A < cutoff (or A = 0) are outside the image.
     values
@@ -350,7 +350,7 @@ def _model_beam(info: ImageInfo, pb: Any) -> tuple[Any, str]:
     if pb is None:
         if tel not in DISH_DIAMETERS:
             return None, (f"{info.name}: no primary beam known (TELESCOP {info.telescope!r}, "
-                          f"frequency {info.frequency_hz}); give pb=")
+                          f"frequency {info.frequency_hz}); give primary_beam=")
         return standard_beam(tel, DISH_DIAMETERS[tel]), ""
     if tel not in DISH_DIAMETERS:
         raise XstackError(f"{info.name}: primary beam {pb!r} needs a known TELESCOP "
@@ -371,7 +371,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
     ``gaussian``, ``vla``, ``none``, a PB FITS image, or an array on the image grid) wins;
     else the beam file named by ``XSPBFILE`` beside the image; else the beam of an in-memory
     ``ImageResult``; else the telescope's standard beam (TELESCOP, the image frequency)
-    centred on the pointing (OBSRA/OBSDEC or the reference position) -- except for a mosaic
+    centered on the pointing (OBSRA/OBSDEC or the reference position) -- except for a mosaic
     (``XSMOSAIC`` > 1), whose beam is not that of one pointing.
 
     ``inside`` of the result decides which positions are inside the field by the one rule of
@@ -427,7 +427,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         conv.inside = lambda ra, dec: inside_field(model, angular_separation(
             np.radians(ra), np.radians(dec), r0, d0), top, conv.cutoff)
         conv.beam_from = (f"{label}: {model.model} beam ({model.dish_diameter:g} m) at "
-                          f"{freq / 1e9:.6g} GHz centred on ({info.pointing_deg[0]:.6f}, "
+                          f"{freq / 1e9:.6g} GHz centered on ({info.pointing_deg[0]:.6f}, "
                           f"{info.pointing_deg[1]:.6f}) deg")
 
     if pb_none:
@@ -455,7 +455,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
     if pb_file is not None and info.path is not None:
         if not pb_file.exists():
             conv.missing = (f"{info.name}: its primary beam {pb_file} (XSPBFILE) is missing; keep "
-                            "it beside the image or give the beam with pb=")
+                            "it beside the image or give the beam with primary_beam=")
             return conv
         pbimg = read_image(pb_file, name=f"primary beam {pb_file}")
         if pbimg.shape != info.shape:
@@ -468,7 +468,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         return conv
     if int(header.get("XSMOSAIC", 1) or 1) > 1:
         conv.missing = (f"{info.name}: a mosaic whose effective primary beam is not given (no "
-                        "XSPBFILE); give its beam image (OUT.pb.fits) with pb=")
+                        "XSPBFILE); give its beam image (OUT.pb.fits) with primary_beam=")
         return conv
     model, why = _model_beam(info, None)
     if model is None:
@@ -485,8 +485,8 @@ def _sampled_inside(beam: np.ndarray, wcs: WCS, info: ImageInfo, beam_freq: floa
     The rule is :func:`xstack.beams.inside_field` at the image's band edge
     (``info.band_top_hz``). A single pointing's beam image holds A at ``beam_freq``; a
     circular beam depends on theta * nu, so A(theta, nu) is read at the radius
-    theta * nu / beam_freq from the pointing centre (bilinear) -- the same positions as the
-    model beam of uvstack. A mosaic's effective beam (``XSMOSAIC`` > 1) has no one centre to
+    theta * nu / beam_freq from the pointing center (bilinear) -- the same positions as the
+    model beam of uvstack. A mosaic's effective beam (``XSMOSAIC`` > 1) has no one center to
     scale about: it is read where the position is (nearest pixel, as the mosaic is blanked),
     i.e. its own coverage at the image's reference frequency (docs/conventions.md).
     """
@@ -507,7 +507,7 @@ def _sampled_inside(beam: np.ndarray, wcs: WCS, info: ImageInfo, beam_freq: floa
     def inside(ra: Any, dec: Any) -> np.ndarray:
         ra_r, dec_r = np.radians(np.asarray(ra, np.float64)), np.radians(np.asarray(dec, np.float64))
         theta = angular_separation(ra_r, dec_r, r0, d0)
-        # position angle of each position about the pointing centre (east of north)
+        # position angle of each position about the pointing center (east of north)
         pa = np.arctan2(np.sin(ra_r - r0) * np.cos(dec_r),
                         np.cos(d0) * np.sin(dec_r) - np.sin(d0) * np.cos(dec_r) * np.cos(ra_r - r0))
 

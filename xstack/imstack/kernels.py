@@ -2,7 +2,7 @@
 
 Conventions shared by every function here:
 
-* A stamp of ``size`` pixels has its centre at index ``c = size // 2`` on both axes (the
+* A stamp of ``size`` pixels has its center at index ``c = size // 2`` on both axes (the
   ``numpy.fft.fftshift`` convention), so offsets run from ``-c`` to ``size - 1 - c`` pixels.
 * Positions are 0-based pixel coordinates ``(x, y)`` of the image array ``image[y, x]``
   (astropy's ``world_to_pixel`` convention).
@@ -25,7 +25,7 @@ SPLINE_NAN_GUARD = 4
 
 #: Least extra pixels on each side of a stamp that a Fourier shift works on, so that the
 #: circular wrap stays outside the stamp (its ringing decays as 1/distance). Measured on
-#: band-limited noise: 8 pixels perturb a 64-pixel stamp's centre by 0.9 % of the noise rms
+#: band-limited noise: 8 pixels perturb a 64-pixel stamp's center by 0.9 % of the noise rms
 #: (random, not a bias) against 0.7 % for 16, at 60 % of the cost.
 SHIFT_MARGIN = 8
 
@@ -37,7 +37,7 @@ def padded_size(size: int, margin: int) -> int:
     """Smallest odd 7-smooth length >= (size | 1) + 2 margin.
 
     Odd, so no Nyquist cell breaks a fractional shift; 7-smooth, so the FFT is fast. An even
-    stamp is cut from an odd one of size + 1, which has the same centre index size // 2.
+    stamp is cut from an odd one of size + 1, which has the same center index size // 2.
     """
     n = (size | 1) + 2 * margin
     while True:
@@ -58,13 +58,13 @@ MIN_NOISE_PIXELS = 16
 
 
 def nearest_pixel(coord: np.ndarray) -> np.ndarray:
-    """Index of the pixel whose centre is nearest to ``coord`` (halves round up), int64."""
+    """Index of the pixel whose center is nearest to ``coord`` (halves round up), int64."""
     return np.floor(np.asarray(coord, dtype=np.float64) + 0.5).astype(np.int64)
 
 
 def extract_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
                    margin: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cut square stamps centred on the pixels nearest to ``(x, y)`` (paper §3.2).
+    """Cut square stamps centered on the pixels nearest to ``(x, y)`` (paper §3.2).
 
     Parameters
     ----------
@@ -200,12 +200,12 @@ def _guarded(stamp: np.ndarray, shift: Any) -> np.ndarray:
 
 def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
                  subpixel: str | bool | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stamps of ``size`` pixels with each stacking position at the stamp centre.
+    """Stamps of ``size`` pixels with each stacking position at the stamp center.
 
     ``subpixel`` selects the alignment:
 
     ``False``/``None``
-        nearest pixel, as in the paper: the position lies within half a pixel of the centre
+        nearest pixel, as in the paper: the position lies within half a pixel of the center
         and the stack loses peak brightness (see :func:`pixelisation_factor`).
     ``"fourier"``
         Fourier shift by the fractional offset (exact for band-limited images). A stamp with
@@ -220,7 +220,7 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
     stamps
         float64 (n, size, size), NaN where not computable.
     frac_x, frac_y
-        The source's offset from the nearest pixel centre, ``x - round(x)``, in pixels
+        The source's offset from the nearest pixel center, ``x - round(x)``, in pixels
         (what nearest-pixel alignment leaves uncorrected).
     """
     x = np.asarray(x, dtype=np.float64)
@@ -230,14 +230,14 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
         return stamps, x - ix, y - iy
     if subpixel not in ("fourier", "spline"):
         raise ValueError(f"unknown sub-pixel method {subpixel!r}")
-    odd = size | 1  # an even stamp is the first `size` pixels of an odd one, same centre
+    odd = size | 1  # an even stamp is the first `size` pixels of an odd one, same center
     if subpixel == "fourier":
         margin = (padded_size(size, SHIFT_MARGIN) - odd) // 2
     else:
         margin = SPLINE_MARGIN
     padded, ix, iy = extract_stamps(image, x, y, odd, margin)
     fx, fy = x - ix, y - iy
-    # the source sits at +f from the centre: move it by -f onto the centre pixel
+    # the source sits at +f from the center: move it by -f onto the center pixel
     dx, dy = -fx, -fy
     result = np.empty((x.size, size, size))
     for s in range(0, x.size, SHIFT_CHUNK):  # chunks bound the temporaries' memory
@@ -260,7 +260,7 @@ def align_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
 
 
 def offsets_grid(size: int) -> np.ndarray:
-    """Pixel offsets of a stamp's pixels from its centre: ``arange(size) - size // 2``."""
+    """Pixel offsets of a stamp's pixels from its center: ``arange(size) - size // 2``."""
     return np.arange(size, dtype=np.float64) - size // 2
 
 
@@ -365,7 +365,7 @@ def lowfreq_mask(shape: tuple[int, int], n_central: int | None = None,
                  q_min_cells: float | None = None) -> np.ndarray:
     """Boolean mask (unshifted FFT order) of the Fourier cells the §5.3 filter sets to zero.
 
-    ``n_central``: the central n x n cells of the centred Fourier image (paper: 3 x 3 for a
+    ``n_central``: the central n x n cells of the centered Fourier image (paper: 3 x 3 for a
     256 x 256 stamp). ``q_min_cells``: every cell with radius sqrt(ky^2 + kx^2) < q_min,
     in units of Fourier cells (one cell is 1 / (stamp size x pixel) wavelengths).
     """

@@ -23,6 +23,7 @@ from xstack import __version__, _vocabulary
 from xstack._atomic import atomic_output, check_output
 from xstack._inputs import Positions
 from xstack._progress import progress_iter
+from xstack._result import Result
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
 from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.imstack import kernels
@@ -44,8 +45,8 @@ SUBPIXEL = (False, "fourier", "spline")
 ImageSource = str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo
 
 
-@dataclass
-class ImstackResult:
+@dataclass(kw_only=True)
+class ImstackResult(Result):
     """Result of :func:`imstack`.
 
     Attributes
@@ -55,7 +56,7 @@ class ImstackResult:
         stamp is off its image. One entry per (position, image) pair used; the coordinates
         ``position`` (catalog row), ``image`` (index into ``images``), ``ra``, ``dec``
         (deg), ``weight``, ``sigma`` (local noise, Jy/beam), ``pb`` (attenuation or NaN),
-        ``frac_x``, ``frac_y`` (offset of the position from the nearest pixel centre, pixels)
+        ``frac_x``, ``frac_y`` (offset of the position from the nearest pixel center, pixels)
         run along ``source``; ``x``, ``y`` are offsets in arcsec (x positive to the east for
         a standard image with negative CDELT1, y to the north).
     weights
@@ -136,6 +137,22 @@ class ImstackResult:
             "primary_beam": [dict(p) for p in self.primary_beam],
         }
 
+    def table(self) -> Table:
+        """One row per stamp stacked: the cube's ``source`` coordinates (``position`` row,
+        ``image``, ``ra``/``dec`` in deg, ``weight``, ``sigma`` in Jy/beam, ``pb``, sub-pixel
+        offsets) and the stamp's central value ``center_jy``."""
+        t = Table()
+        for name, coord in self.cube.coords.items():
+            if coord.dims == ("source",):
+                t[str(name)] = np.asarray(coord.values)
+        ny, nx = self.cube.shape[1:]
+        t["center_jy"] = np.asarray(self.cube.values[:, ny // 2, nx // 2], dtype=np.float64)
+        for name, unit in (("ra", "deg"), ("dec", "deg"), ("sigma", "Jy/beam"),
+                           ("center_jy", "Jy/beam")):
+            if name in t.colnames:
+                t[name].unit = unit
+        return t
+
 
 # ---------------------------------------------------------------------------------------------
 # helpers
@@ -199,9 +216,9 @@ def _mean_position(ra: np.ndarray, dec: np.ndarray, w: np.ndarray) -> tuple[floa
 # public API
 # ---------------------------------------------------------------------------------------------
 
-def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stamp_size: int = 64,
+def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *, stamp_size: int = 64,
             method: str = "mean", weighting: str = "sigma2", subpixel: str | bool = False,
-            pb: Any = None, pbcor: bool = False, psf: Any = None,
+            primary_beam: Any = None, pbcor: bool = False, psf: Any = None,
             image_corrected: bool | None | Sequence[bool | None] = None,
             beam_mask_arcsec: float | None = None, filter_lowfreq: int | str | None = None,
             skip_outside: bool = False, out: str | os.PathLike | None = None,
@@ -232,13 +249,13 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         ``"none"``: W_k = 1. ``"column"``: the catalog's ``weight`` column.
     subpixel
         ``False`` (nearest pixel, as in the paper), ``"fourier"`` or ``"spline"`` (shift each
-        stamp so the position is exactly at the centre; removes the pixelisation loss).
-    pb
+        stamp so the position is exactly at the center; removes the pixelisation loss).
+    primary_beam
         Primary beam A: a :class:`~xstack.beams.PrimaryBeam`, a model name, a PB FITS image,
         an array on the image grid, or a list with one per image. It wins over the image's
         own beam. Default: the beam file named by the header (``XSPBFILE``, written by
         ``xstack image`` as ``X.pb.fits``; a mosaic's effective beam), else the telescope's
-        standard beam from TELESCOP and the image frequency, centred on OBSRA/OBSDEC or the
+        standard beam from TELESCOP and the image frequency, centered on OBSRA/OBSDEC or the
         WCS reference position (never for a mosaic). Positions outside the field are not
         stacked from that image: the one rule of every stage
         (:func:`xstack.beams.inside_field`: A >= the cutoff -- the header's ``XSPBCUT``, the
@@ -341,7 +358,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
     sy = pix_y * (-1.0 if pixm[1, 1] < 0 else 1.0)
     rho = float(np.degrees(np.arctan2(pixm[0, 1], pixm[1, 1])))
     beam = next((i.beam_arcsec for i in infos if i.beam_arcsec), None)
-    pbs = _as_list(pb, len(infos), "pb")
+    pbs = _as_list(primary_beam, len(infos), "primary_beam")
     corr = _as_list(image_corrected, len(infos), "image_corrected")
     convs: list[BeamConvention] = [
         image_beam(info, pbs[i], corr[i],
@@ -363,14 +380,14 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
             & (py >= -0.5) & (py < ny - 0.5)
         ix, iy = kernels.nearest_pixel(np.where(inside, px, 0)), kernels.nearest_pixel(
             np.where(inside, py, 0))
-        inside &= np.isfinite(info.data[iy, ix])  # blanked centre: not covered by this image
+        inside &= np.isfinite(info.data[iy, ix])  # blanked center: not covered by this image
         conv = convs[i]
         # A is needed for pb weights and to correct an uncorrected image (and recorded when
         # the beam travels with the image)
         if weighting == "pb" or not conv.corrected or conv.from_image:
             if conv.values is None:
-                raise XstackError(conv.missing or f"{info.name}: no primary beam known; give pb=",
-                                  option="pb")
+                raise XstackError(conv.missing or f"{info.name}: no primary beam known; give primary_beam=",
+                                  option="primary_beam")
             atten[:, i] = np.asarray(conv.values(ra, dec), dtype=np.float64)
         # whenever a beam is known, the one rule of every stage decides "inside the field"
         # (xstack.beams.inside_field at the image's band edge, docs/conventions.md)
@@ -436,8 +453,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
         use = w > 0
         stacked, wsum = kernels.nanmedian_stack(stamps[use])
     c = stamp_size // 2
-    centre_ok = np.isfinite(stamps[:, c, c]) & (w > 0)
-    if not centre_ok.any():
+    center_ok = np.isfinite(stamps[:, c, c]) & (w > 0)
+    if not center_ok.any():
         # the nearest pixels are finite (or the position would count as uncovered), but a
         # sub-pixel shift blanks pixels near a NaN: without this the flux is silently NaN
         raise XstackError(
@@ -446,8 +463,8 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
             "shift; use subpixel=False or images without blanking near the positions")
     # the stacked value's noise from the stamps' local noise (eq. 5 / 6)
     # (the median is unweighted: its error is that of the equal-weight mean times sqrt(pi/2))
-    flux_err = kernels.weighted_error(sigma[centre_ok], w[centre_ok] if method == "mean"
-                                      else np.ones(int(centre_ok.sum())))
+    flux_err = kernels.weighted_error(sigma[center_ok], w[center_ok] if method == "mean"
+                                      else np.ones(int(center_ok.sum())))
     if method == "median":
         flux_err *= kernels.MEDIAN_NOISE_FACTOR
 
@@ -516,7 +533,7 @@ def imstack(images: ImageSource | Sequence[ImageSource], positions: Any, *, stam
 
 
 def _psf_stamp_for(info: ImageInfo, psf: Any, stamp_size: int) -> np.ndarray | None:
-    """A finite PSF stamp with margin (odd size) centred on the PSF peak, or None."""
+    """A finite PSF stamp with margin (odd size) centered on the PSF peak, or None."""
     if psf is None and "psf" in info.extra:
         psf = info.extra["psf"]
     if psf is None:
@@ -589,7 +606,7 @@ def _header_cards(result: ImstackResult) -> list[tuple[str, Any, str]]:
         ("STMETHOD", result.method, "stacking: mean (weighted) or median"),
         ("STWEIGHT", result.weighting, "stamp weights: sigma2, pb, none, column"),
         ("STSUBPIX", str(result.subpixel or "nearest"), "alignment: nearest, fourier, spline"),
-        ("STFLUX", f(result.flux_jy), "[Jy/beam] stacked value at the centre pixel"),
+        ("STFLUX", f(result.flux_jy), "[Jy/beam] stacked value at the center pixel"),
         ("STFLUXER", f(result.flux_err_jy), "[Jy/beam] noise of STFLUX from sigma_k (eq. 5)"),
         ("STRMS", f(result.stamp_rms_jy), "[Jy/beam] rms of the stack outside the mask"),
         ("STPEAK", f(result.peak_jy), "[Jy/beam] maximum inside the central mask"),
@@ -623,9 +640,9 @@ def _write_outputs(result: ImstackResult, paths: dict[str, Path], pixm: np.ndarr
         ph["EXTNAME"] = "PSF"
         ph["PSFSMEAR"] = (not result.subpixel, "includes the nearest-pixel smear of the stack")
         c = size // 2
-        ph["PSFPEAK"] = (float(result.psf_stamp.values[c, c]), "centre value: keep, do not renormalise")
+        ph["PSFPEAK"] = (float(result.psf_stamp.values[c, c]), "center value: keep, do not renormalise")
         ph["HISTORY"] = "PSF of the stack: mean of the dirty beam displaced by every position's"
-        ph["HISTORY"] = "sub-pixel offset (PSFSMEAR = T). Its centre value PSFPEAK < 1 is the"
+        ph["HISTORY"] = "sub-pixel offset (PSFSMEAR = T). Its center value PSFPEAK < 1 is the"
         ph["HISTORY"] = "pixelisation loss; fitting with it unnormalised gives the true flux."
         hdus.append(fits.ImageHDU(result.psf_stamp.values.astype(np.float64), header=ph, name="PSF"))
     wh = fits.Header()

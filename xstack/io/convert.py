@@ -521,7 +521,7 @@ def convert_ms(
     -----
     WEIGHT comes from WEIGHT_SPECTRUM where it holds data, else WEIGHT (broadcast over
     channels), else 1/SIGMA^2; FLAG is FLAG or FLAG_ROW. Missing (time, baseline) cells are
-    NaN in VISIBILITY, zero in WEIGHT, flagged, and zero in UVW. Phase centres are
+    NaN in VISIBILITY, zero in WEIGHT, flagged, and zero in UVW. Phase centers are
     converted to ICRS (J2000 is taken as ICRS). Visibilities stay complex128 if the column
     is double precision.
 

@@ -235,7 +235,7 @@ def export_ms(
     SPECTRAL_WINDOW, DATA_DESCRIPTION, SOURCE (with REST_FREQUENCY, SYSVEL and TRANSITION,
     NUM_LINES = 0), PROCESSOR, STATE and HISTORY are filled; POINTING and FLAG_CMD are empty
     (a store does not record where the antennas pointed). The structure is that of the MSs
-    CASA 6.7 writes where CASA relies on it (``docs/io.md``). Phase centres are written as
+    CASA 6.7 writes where CASA relies on it (``docs/io.md``). Phase centers are written as
     J2000 (= ICRS here). Padding cells of irregular grids are not written.
 
     Raises

@@ -129,7 +129,7 @@ def to_icrs(ra: float, dec: float, frame: str, where: str) -> tuple[float, float
     if frame in ICRS_LIKE:
         return float(ra), float(dec)
     if frame not in ASTROPY_FRAMES:
-        raise XstackError(f"{where}: phase centre frame {frame} is not supported "
+        raise XstackError(f"{where}: phase center frame {frame} is not supported "
                           f"(use one of {', '.join((*ICRS_LIKE, *ASTROPY_FRAMES))})")
     from astropy import units as u
     from astropy.coordinates import SkyCoord

@@ -14,11 +14,8 @@ linear: stack(data + model, pos) = stack(data, pos) + stack(model, pos)).
 
 from __future__ import annotations
 
-import json
-import os
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,6 +24,7 @@ from xstack import _vocabulary
 from xstack._antenna import MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions
 from xstack._json import finite_or_none
+from xstack._result import Result
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack.beams import (
     DEFAULT_PB_CUTOFF,
@@ -46,8 +44,8 @@ ENGINES = _vocabulary.NOISE_ENGINES
 WEIGHTINGS = _vocabulary.NOISE_WEIGHTINGS
 
 
-@dataclass
-class NoiseResult:
+@dataclass(kw_only=True)
+class NoiseResult(Result):
     """Noise (1-sigma scatter) and bias of a stacked flux density.
 
     Attributes
@@ -106,15 +104,10 @@ class NoiseResult:
         if self.injected is not None:
             t["injected_jy"] = self.injected
             t["offset_jy"] = self.values - self.injected
+        for name in t.colnames[1:]:
+            t[name].unit = "Jy"
         return t
 
-    def write_json(self, path: str | os.PathLike, overwrite: bool = False) -> Path:
-        """Write :meth:`to_dict` as JSON, atomically."""
-        from xstack._atomic import atomic_output
-
-        with atomic_output(path, overwrite=overwrite) as tmp:
-            Path(tmp).write_text(json.dumps(self.to_dict(), indent=2))
-        return Path(path)
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -131,7 +124,7 @@ class _Pointing:
     def __init__(self, name: str, ds: Any, primary_beam: str | None, cutoff: float):
         self.name = name
         self.ds = ds
-        self.centre = tuple(float(x) for x in ds.attrs["phase_center"])
+        self.center = tuple(float(x) for x in ds.attrs["phase_center"])
         self.freq = np.asarray(ds["frequency"].values, dtype=np.float64)
         dish = dish_diameter(ds)
         if isinstance(primary_beam, PrimaryBeam):
@@ -151,12 +144,12 @@ class _Pointing:
 
     def attenuation(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """(nchan, K) power attenuation of positions in this pointing."""
-        theta = angular_separation(ra, dec, self.centre[0], self.centre[1])
+        theta = angular_separation(ra, dec, self.center[0], self.center[1])
         return self.beam.main_lobe(theta[None, :], self.freq[:, None])
 
     def inside(self, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         """In this pointing: the one rule of every stage (:func:`xstack.beams.inside_field`)."""
-        theta = angular_separation(ra, dec, self.centre[0], self.centre[1])
+        theta = angular_separation(ra, dec, self.center[0], self.center[1])
         return inside_field(self.beam, theta, self.freq)
 
     def radius(self, field_radius: float | None) -> float:
@@ -253,7 +246,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         ``"uv"`` (uv-stacking, eq. 4) or ``"image"`` (mean of the nearest pixels, divided by
         the primary beam; mc injects S A PSF, the PSF from ``psf`` or ``X.psf.fits``).
     weighting
-        Position weights w_k, as in :func:`xstack.uvstack`: ``pb`` (default; A_k^2 at the
+        Position weights w_k, as in :func:`xstack.stack_uv`: ``pb`` (default; A_k^2 at the
         mean frequency, inverse variance for primary-beam corrected fluxes), ``none`` (1) or
         ``column`` (catalog ``weight``;
         random/mc positions reuse the targets' weights).
@@ -276,9 +269,9 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         Kernel of ``mc``/``random`` (the results agree to float64 rounding): ``auto``
         (default) uses per-antenna phasors for every block whose baseline UVW are differences
         of per-antenna UVW to ``antenna_tol_rad`` and the per-row kernel for the others;
-        ``antenna`` requires the antenna path everywhere (error otherwise); ``row`` forces
+        ``antenna`` requires the antenna path everywhere (error otherwise); ``numba`` forces
         the per-row kernel. ``analytic`` and ``bootstrap`` always use the per-row kernel.
-        The engine used is reported in ``extra["engine"]`` (``antenna``, ``row`` or
+        The engine used is reported in ``extra["engine"]`` (``antenna``, ``numba`` or
         ``mixed``), with the block counts and the reason of the first fallback.
     region
         Where random / injected positions are drawn (``mc``, ``random``), always intersected
@@ -370,16 +363,16 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         # where random positions go: the targets' footprint (default), the whole beam, a
         # polygon or a mask; always inside some pointing's disc (beam cutoff / field radius)
         reg = make_region(region, ra_t[inside_any], dec_t[inside_any], min_margin=min_sep)
-        centres = np.array([pt.centre for pt in pointings])
+        centers = np.array([pt.center for pt in pointings])
         radii = np.array([
             np.pi if (field_radius_arcsec is None and pt.beam.model == "none"
                       and reg.proposal is not None)  # no beam edge: the region alone
             else pt.radius(None if field_radius_arcsec is None else field_radius_arcsec * ARCSEC)
             for pt in pointings])
-        uniq, idx = np.unique(np.round(centres, 12), axis=0, return_index=True)
-        extra_region = reg.describe(centres[idx], radii[idx])
+        uniq, idx = np.unique(np.round(centers, 12), axis=0, return_index=True)
+        extra_region = reg.describe(centers[idx], radii[idx])
         n_fake = int(inside_any.sum())
-        r_ra, r_dec = random_positions(n_fake, realizations, centres[idx], radii[idx],
+        r_ra, r_dec = random_positions(n_fake, realizations, centers[idx], radii[idx],
                                        avoid_ra=np.concatenate(av_ra),
                                        avoid_dec=np.concatenate(av_dec), min_separation=min_sep,
                                        rng=rng, region=reg)
@@ -429,17 +422,17 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
     wk_t = np.zeros((len(pointings), n_t))        # w_k of the targets per pointing
     wtot_p = np.zeros(len(pointings))
     any_data = False
-    engine_blocks = {"antenna": 0, "row": 0}
+    engine_blocks = {"antenna": 0, "numba": 0}
     engine_info: dict[str, Any] = {}
     from xstack._progress import progress_iter
 
     for ip, pt in enumerate(pointings):
         A = pt.attenuation(all_ra, all_dec)                     # (nchan, K)
         inside = pt.inside(all_ra, all_dec)
-        l, m, _, n1 = radec_to_lmn(all_ra, all_dec, *pt.centre)
+        l, m, _, n1 = radec_to_lmn(all_ra, all_dec, *pt.center)
         wk = all_w.copy()
         if weighting == "pb":
-            wk = np.asarray(pt.beam(angular_separation(all_ra, all_dec, *pt.centre), pt.fmid)) ** 2
+            wk = np.asarray(pt.beam(angular_separation(all_ra, all_dec, *pt.center), pt.fmid)) ** 2
         wk = np.where(inside, wk, 0.0)
         gsum = np.add.reduceat(wk, starts[:-1]) if G else np.zeros(0)
         gsum = np.where(sizes > 0, gsum, 0.0)
@@ -509,7 +502,7 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         extra["region"] = extra_region
     if method in ("mc", "random"):
         extra["engine"] = ("mixed" if all(engine_blocks.values()) else
-                           "antenna" if engine_blocks["antenna"] else "row")
+                           "antenna" if engine_blocks["antenna"] else "numba")
         extra["engine_blocks"] = dict(engine_blocks)
         extra.update(engine_info)
     # ---- results -------------------------------------------------------------------------
@@ -529,8 +522,8 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                     f"own scatter ({emp:.3g} Jy) differ by a factor {emp / noise:.3g}: the "
                     "weights are not 1/sigma^2 of the data; trust noise_empirical_jy (or a "
                     "random/mc estimate)", stacklevel=2)
-            return NoiseResult("analytic", noise, None, 0, np.zeros(0), None,
-                               target_flux, n_used, extra=extra)
+            return NoiseResult(method="analytic", noise_jy=noise, bias_jy=None, realizations=0,
+                               target_flux_jy=target_flux, n_positions=n_used, extra=extra)
         # resample the targets that enter the stack (inside some pointing), as many as there
         # are: the same positions, and the same count, as every other method and uvstack use
         idx_in = np.flatnonzero(inside_any)
@@ -538,9 +531,10 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         counts = np.stack([np.bincount(idx_in[rng.integers(0, n_in, n_in)], minlength=n_t)
                            for _ in range(realizations)])
         vals = np.array([_combine_targets(X_t, inside_t, wtot_p, wk_t, c) for c in counts])
-        return NoiseResult("bootstrap", float(np.std(vals, ddof=1)),
-                           float(np.mean(vals) - target_flux), realizations, vals, None,
-                           target_flux, n_in, extra=extra)
+        return NoiseResult(method="bootstrap", noise_jy=float(np.std(vals, ddof=1)),
+                           bias_jy=float(np.mean(vals) - target_flux), realizations=realizations,
+                           values=vals, target_flux_jy=target_flux, n_positions=n_in,
+                           extra=extra)
 
     dens = np.where(den > 0, den, np.nan)
     target_flux = float(num[-1] / dens[-1])
@@ -562,17 +556,19 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
                    "values": pv[:n_real], "target": pv[-1], "weight": prof_w[0]}
     pos = np.degrees(np.stack([np.stack(groups_ra[:n_real]), np.stack(groups_dec[:n_real])], -1))
     if method == "random":
-        return NoiseResult("random", float(np.std(vals, ddof=1)), float(np.mean(vals)),
-                           n_real, vals, None, target_flux, int(sizes[0]), profile=profile,
-                           extra=extra, positions_deg=pos)
+        return NoiseResult(method="random", noise_jy=float(np.std(vals, ddof=1)),
+                           bias_jy=float(np.mean(vals)), realizations=n_real, values=vals,
+                           target_flux_jy=target_flux, n_positions=int(sizes[0]),
+                           profile=profile, extra=extra, positions_deg=pos)
     injected = expect[:n_real] / np.where(den[:n_real] > 0, den[:n_real], np.nan)
     if need_flux_for_mc:
         extra["injected_flux_from"] = "stacked target flux"
     if profile is not None:
         profile["injected"] = injected
-    return NoiseResult("mc", float(np.std(vals, ddof=1)), float(np.mean(vals - injected)),
-                       n_real, vals, injected, target_flux, int(sizes[0]), profile=profile,
-                       extra=extra, positions_deg=pos,
+    return NoiseResult(method="mc", noise_jy=float(np.std(vals, ddof=1)),
+                       bias_jy=float(np.mean(vals - injected)), realizations=n_real,
+                       values=vals, injected=injected, target_flux_jy=target_flux,
+                       n_positions=int(sizes[0]), profile=profile, extra=extra, positions_deg=pos,
                        injected_flux_jy=scale * np.stack(groups_s[:n_real]))
 
 
@@ -606,7 +602,7 @@ def _analytic_noise(var: np.ndarray, inside: np.ndarray, wtot: np.ndarray, w: np
 def _group_sums(pt: _Pointing, uvw, vis_w, wsum, l, m, n1, coef, b, starts, bins, nbins,
                 engine: str, tol_rad: float, blocks: dict[str, int], info: dict[str, Any]):
     """Group sums of one block by the antenna path when valid (or forced), else per row."""
-    if engine != "row":
+    if engine != "numba":
         try:
             if pt.antennas is None:
                 raise kernels.FactorisationError("no baseline antenna ids in the data")
@@ -625,7 +621,7 @@ def _group_sums(pt: _Pointing, uvw, vis_w, wsum, l, m, n1, coef, b, starts, bins
             blocks["antenna"] += 1
             info["antenna_phase_error_rad"] = max(info.get("antenna_phase_error_rad", 0.0), err)
             return out
-    blocks["row"] += 1
+    blocks["numba"] += 1
     return kernels.group_sums(uvw, pt.freq, vis_w, wsum, l, m, n1, coef, b, starts, bins=bins,
                               nbins=nbins)
 

@@ -123,15 +123,17 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
         noise = float(np.sqrt(np.sum(wn**2 * sig_k**2)))
         extra.update({"sigma_map_jy_per_beam": sigma_map,
                       "optimal_noise_jy": float(1.0 / np.sqrt(np.sum(1.0 / sig_k**2)))})
-        return NoiseResult("analytic", noise, None, 0, np.zeros(0), None, target, n,
-                           domain="image", extra=extra)
+        return NoiseResult(method="analytic", noise_jy=noise, bias_jy=None, realizations=0,
+                           target_flux_jy=target, n_positions=n, domain="image", extra=extra)
     if method == "bootstrap":
         vals = np.empty(realizations)
         for r in range(realizations):
             idx = rng.integers(0, n, n)
             vals[r] = stack(ra_u[idx], dec_u[idx], w_u[idx])
-        return NoiseResult("bootstrap", float(np.std(vals, ddof=1)), float(np.mean(vals) - target),
-                           realizations, vals, None, target, n, domain="image", extra=extra)
+        return NoiseResult(method="bootstrap", noise_jy=float(np.std(vals, ddof=1)),
+                           bias_jy=float(np.mean(vals) - target), realizations=realizations,
+                           values=vals, target_flux_jy=target, n_positions=n, domain="image",
+                           extra=extra)
     # random / mc: positions inside the largest usable disc around the pointing
     bmaj = (info.beam_arcsec[0] * ARCSEC) if info.beam_arcsec else None
     if min_separation_arcsec is not None:
@@ -207,9 +209,11 @@ def estimate_noise_image(image: Any, positions: Any, *, method: str, realization
     extra["min_separation_arcsec"] = float(min_sep / ARCSEC)
     pos = np.degrees(np.stack([r_ra, r_dec], -1))
     if method == "random":
-        return NoiseResult("random", float(np.std(vals, ddof=1)), float(np.mean(vals)),
-                           realizations, vals, None, target, n, domain="image", extra=extra,
+        return NoiseResult(method="random", noise_jy=float(np.std(vals, ddof=1)),
+                           bias_jy=float(np.mean(vals)), realizations=realizations, values=vals,
+                           target_flux_jy=target, n_positions=n, domain="image", extra=extra,
                            positions_deg=pos)
-    return NoiseResult("mc", float(np.std(vals, ddof=1)), float(np.mean(vals - injected)),
-                       realizations, vals, injected, target, n, domain="image", extra=extra,
-                       positions_deg=pos)
+    return NoiseResult(method="mc", noise_jy=float(np.std(vals, ddof=1)),
+                       bias_jy=float(np.mean(vals - injected)), realizations=realizations,
+                       values=vals, injected=injected, target_flux_jy=target, n_positions=n,
+                       domain="image", extra=extra, positions_deg=pos)

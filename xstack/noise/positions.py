@@ -28,14 +28,14 @@ def _chord(angle: float) -> float:
     return 2.0 * np.sin(min(angle, np.pi) / 2.0)
 
 
-def _uniform_in_union(n: int, centres: np.ndarray, radii: np.ndarray,
+def _uniform_in_union(n: int, centers: np.ndarray, radii: np.ndarray,
                       rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` points uniform on the sphere inside the union of discs (centres (P, 2) rad)."""
+    """``n`` points uniform on the sphere inside the union of discs (centers (P, 2) rad)."""
     out_ra, out_dec = [], []
     got = 0
     while got < n:
         m = int(1.5 * (n - got)) + 16
-        ra, dec, cover = _mixture_draw(m, centres, radii, rng)
+        ra, dec, cover = _mixture_draw(m, centers, radii, rng)
         # accept with probability 1 / (number of discs covering the point): uniform on the union
         keep = rng.uniform(size=m) * np.maximum(cover, 1) < 1.0
         out_ra.append(ra[keep])
@@ -44,18 +44,18 @@ def _uniform_in_union(n: int, centres: np.ndarray, radii: np.ndarray,
     return np.concatenate(out_ra)[:n], np.concatenate(out_dec)[:n]
 
 
-def _uniform_in_region(n: int, centres: np.ndarray, radii: np.ndarray, region: Region | None,
+def _uniform_in_region(n: int, centers: np.ndarray, radii: np.ndarray, region: Region | None,
                        rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """``n`` points uniform on the sphere inside ``region`` and the union of the discs."""
     if region is None or region._contains is None:
-        return _uniform_in_union(n, centres, radii, rng)
-    pc, pr = region._proposal_for(centres, radii)
+        return _uniform_in_union(n, centers, radii, rng)
+    pc, pr = region._proposal_for(centers, radii)
     out_ra, out_dec = [], []
     got, tried, rate = 0, 0, 0.5
     while got < n:
         m = int(min(2e6, 1.3 * (n - got) / max(rate, 1e-3))) + 16
         ra, dec = _uniform_in_union(m, pc, pr, rng)
-        ok = region.contains(ra, dec) & _in_discs(ra, dec, centres, radii)
+        ok = region.contains(ra, dec) & _in_discs(ra, dec, centers, radii)
         tried += m
         got += int(ok.sum())
         out_ra.append(ra[ok])
@@ -67,14 +67,14 @@ def _uniform_in_region(n: int, centres: np.ndarray, radii: np.ndarray, region: R
     return np.concatenate(out_ra)[:n], np.concatenate(out_dec)[:n]
 
 
-def random_positions(n: int, realizations: int, centres: np.ndarray, radii: np.ndarray, *,
+def random_positions(n: int, realizations: int, centers: np.ndarray, radii: np.ndarray, *,
                      avoid_ra: np.ndarray, avoid_dec: np.ndarray, min_separation: float,
                      rng: np.random.Generator, max_rounds: int = 30,
                      region: Any = None, region_targets: tuple[np.ndarray, np.ndarray] | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
     """``realizations`` sets of ``n`` random positions (radians, arrays (R, n)).
 
-    Positions are uniform on the sphere inside the union of the discs (``centres`` (P, 2),
+    Positions are uniform on the sphere inside the union of the discs (``centers`` (P, 2),
     ``radii`` (P,) rad: primary beam above its cutoff) and inside ``region`` (if given: a
     :class:`Region`, or a :func:`make_region` spec such as ``"hull"`` built from
     ``region_targets`` = (ra, dec) rad with margin floor ``min_separation``; built once and
@@ -103,7 +103,7 @@ def random_positions(n: int, realizations: int, centres: np.ndarray, radii: np.n
             need = n - len(kept_ra)
             if need <= 0:
                 break
-            ra, dec = _uniform_in_region(4 * need + 16, centres, radii, region, rng)
+            ra, dec = _uniform_in_region(4 * need + 16, centers, radii, region, rng)
             xyz = _xyz(ra, dec)
             ok = np.ones(ra.size, dtype=bool)
             if avoid_tree is not None and min_separation > 0:
@@ -221,7 +221,7 @@ class Region:
     kind : ``hull``, ``beam``, ``polygon`` or ``mask``
     description : one line for people, completed with the area by :meth:`describe`
     n_targets : number of targets the region was derived from (hull), else 0
-    proposal : (centres (Q, 2) rad, radii (Q,) rad) discs that contain the region, or None
+    proposal : (centers (Q, 2) rad, radii (Q,) rad) discs that contain the region, or None
         (the region is the whole sky: the pointings' discs bound it)
     """
 
@@ -240,39 +240,39 @@ class Region:
             return np.ones(ra.shape, dtype=bool)
         return np.asarray(self._contains(ra, np.asarray(dec, dtype=np.float64)), dtype=bool)
 
-    def area_sr(self, centres: np.ndarray, radii: np.ndarray, n: int = 40000) -> float:
+    def area_sr(self, centers: np.ndarray, radii: np.ndarray, n: int = 40000) -> float:
         """Area (sr) of the region inside the union of the discs, by Monte Carlo (~1 %)."""
-        centres, radii = np.atleast_2d(centres), np.atleast_1d(radii)
-        pc, pr = self._proposal_for(centres, radii)
+        centers, radii = np.atleast_2d(centers), np.atleast_1d(radii)
+        pc, pr = self._proposal_for(centers, radii)
         rng = np.random.default_rng(20150101)
         area = 2 * np.pi * (1.0 - np.cos(pr))
         ra, dec, cover = _mixture_draw(n, pc, pr, rng)
-        ok = self.contains(ra, dec) & _in_discs(ra, dec, centres, radii)
+        ok = self.contains(ra, dec) & _in_discs(ra, dec, centers, radii)
         return float(area.sum() * np.mean(ok / np.maximum(cover, 1)))
 
-    def describe(self, centres: np.ndarray, radii: np.ndarray) -> str:
+    def describe(self, centers: np.ndarray, radii: np.ndarray) -> str:
         """``description`` with the area (arcmin^2) inside the pointings' discs."""
-        a = self.area_sr(centres, radii) / ARCMIN2_SR
+        a = self.area_sr(centers, radii) / ARCMIN2_SR
         return f"{self.description}; {a:.4g} arcmin^2 inside the pointings"
 
-    def _proposal_for(self, centres: np.ndarray, radii: np.ndarray
+    def _proposal_for(self, centers: np.ndarray, radii: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
         """The smaller (in summed area) of the region's discs and the pointings' discs."""
         if self.proposal is None:
-            return centres, radii
+            return centers, radii
         pc, pr = self.proposal
         if np.sum(1 - np.cos(pr)) < np.sum(1 - np.cos(radii)):
             return pc, pr
-        return centres, radii
+        return centers, radii
 
 
-def _in_discs(ra: np.ndarray, dec: np.ndarray, centres: np.ndarray, radii: np.ndarray
+def _in_discs(ra: np.ndarray, dec: np.ndarray, centers: np.ndarray, radii: np.ndarray
               ) -> np.ndarray:
-    cxyz = _xyz(centres[:, 0], centres[:, 1])
+    cxyz = _xyz(centers[:, 0], centers[:, 1])
     return np.any(_xyz(ra, dec) @ cxyz.T >= np.cos(radii)[None, :] - 1e-15, axis=1)
 
 
-def _mixture_draw(m: int, centres: np.ndarray, radii: np.ndarray, rng: np.random.Generator
+def _mixture_draw(m: int, centers: np.ndarray, radii: np.ndarray, rng: np.random.Generator
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``m`` points from the area-weighted mixture of uniform discs, and their cover counts."""
     area = 1.0 - np.cos(radii)
@@ -286,8 +286,8 @@ def _mixture_draw(m: int, centres: np.ndarray, radii: np.ndarray, rng: np.random
         sel = p == q
         ra[sel], dec[sel] = lm_to_radec(sin_t[sel] * np.sin(phi[sel]),
                                         sin_t[sel] * np.cos(phi[sel]),
-                                        centres[q, 0], centres[q, 1])
-    cxyz = _xyz(centres[:, 0], centres[:, 1])
+                                        centers[q, 0], centers[q, 1])
+    cxyz = _xyz(centers[:, 0], centers[:, 1])
     cover = (_xyz(ra, dec) @ cxyz.T >= np.cos(radii)[None, :] - 1e-15).sum(axis=1)
     return ra, dec, cover
 
@@ -427,7 +427,7 @@ def polygon_region(ra_deg: np.ndarray, dec_deg: np.ndarray, name: str = "polygon
         raise XstackError(f"{name}: a polygon needs at least 3 vertices, got {ra.size}")
     ra0, dec0 = _mean_direction(ra, dec)
     if float(angular_separation(ra, dec, ra0, dec0).max()) > np.radians(80):
-        raise XstackError(f"{name}: polygon wider than 80 deg from its centre")
+        raise XstackError(f"{name}: polygon wider than 80 deg from its center")
     vx, vy, _ = _gnomonic(ra, dec, ra0, dec0)
     if _polygon_area(vx, vy) <= 0:
         raise XstackError(f"{name}: the polygon has zero area")

@@ -2,7 +2,7 @@
 
 UVW follow the MeasurementSet convention that CASA writes: the baseline of a row is
 ``position(antenna1) - position(antenna2)``, projected on the ICRS/J2000 frame of the phase
-centre: u towards east, v towards north, w towards the source. (CASA's documents contradict
+center: u towards east, v towards north, w towards the source. (CASA's documents contradict
 each other on the order; the real ALMA MeasurementSet written by CASA's importasdm that
 pyuvdata ships, and pyuvdata's own reader, settle it: antenna1 - antenna2 for rows with
 antenna1 < antenna2. ``tests/test_sim_arrays.py`` checks it against that MS.) The Earth's

@@ -13,7 +13,7 @@ fluxes are integrated flux densities, and the 1/n factor belongs to the image-pl
 
 Work that a call does not need is not done: no w-term arithmetic when ``n_minus_1`` is
 ``None``; no Gaussian factor for point sources (``fwhm`` ``None`` or 0); no phasors at all for
-point sources at the phase centre (their visibilities are the constant sum of their fluxes).
+point sources at the phase center (their visibilities are the constant sum of their fluxes).
 Which of these steps ran is counted in :data:`STEP_COUNTS` (see :func:`record_steps`) so the
 tests can prove it without timing.
 
@@ -60,7 +60,7 @@ def record_steps() -> Iterator[Counter[str]]:
     """Context manager yielding a Counter of the kernel steps run inside the block.
 
     Works across dask threads (the counts are process-wide; do not nest concurrent blocks).
-    Keys: ``"constant"`` (centre point sources), ``"phase"`` (off-centre phasors),
+    Keys: ``"constant"`` (center point sources), ``"phase"`` (off-center phasors),
     ``"w_term"``, ``"gaussian"``, ``"attenuation"``, ``"smear_bandwidth"``, ``"smear_time"``.
     """
     with _LOCK:
@@ -296,7 +296,7 @@ def model_visibilities_antenna(antenna_uvw: Any, antenna1: Any, antenna2: Any, f
     Smearing (:mod:`xstack.smearing`), per baseline too: ``channel_width`` ((nchan,) Hz)
     multiplies each source's visibility by the bandwidth factor sinc(pi d dnu / c),
     ``integration_time`` (s) by the time-average factor sinc(pi nu d' dt / c), with the
-    delay rate d' from Earth rotation about a phase centre at declination ``dec0``
+    delay rate d' from Earth rotation about a phase center at declination ``dec0``
     (radians). ``None`` (default): not simulated, no extra work.
 
     Returns
@@ -332,10 +332,10 @@ def model_visibilities_antenna(antenna_uvw: Any, antenna1: Any, antenna2: Any, f
     out = np.zeros((nt, a1.size, nchan), dtype=np.complex128)
     if nsrc == 0 or nt == 0 or a1.size == 0:
         return out.astype(out_dtype, copy=False)
-    at_centre = (l == 0.0) & (m == 0.0)
+    at_center = (l == 0.0) & (m == 0.0)
     if nm1 is not None:
-        at_centre &= nm1 == 0.0
-    const = at_centre & (gcoef == 0.0)
+        at_center &= nm1 == 0.0
+    const = at_center & (gcoef == 0.0)
     if const.any():
         out += amp[const].sum(axis=0)[None, None, :]
         _count("constant")
@@ -395,11 +395,11 @@ def model_visibilities(uvw: Any, frequency: Any, l: Any, m: Any, n_minus_1: Any,
     ----------
     uvw
         (nrow, 3) baseline coordinates in metres, as stored in an MS (u east, v north,
-        w towards the phase centre; baseline = antenna2 - antenna1).
+        w towards the phase center; baseline = antenna2 - antenna1).
     frequency
         (nchan,) channel frequencies, Hz.
     l, m
-        (nsrc,) direction cosines relative to the phase centre
+        (nsrc,) direction cosines relative to the phase center
         (:func:`xstack.coords.radec_to_lmn`).
     n_minus_1
         (nsrc,) ``n - 1`` (computed without cancellation), or ``None`` to leave out the
@@ -455,11 +455,11 @@ def model_visibilities(uvw: Any, frequency: Any, l: Any, m: Any, n_minus_1: Any,
     if nsrc == 0 or nrow == 0 or nchan == 0:
         return out.astype(out_dtype, copy=False)
 
-    # point sources exactly at the phase centre: constant visibilities, no phasors
-    at_centre = (l == 0.0) & (m == 0.0)
+    # point sources exactly at the phase center: constant visibilities, no phasors
+    at_center = (l == 0.0) & (m == 0.0)
     if nm1 is not None:
-        at_centre &= nm1 == 0.0
-    const = at_centre & (gcoef == 0.0)
+        at_center &= nm1 == 0.0
+    const = at_center & (gcoef == 0.0)
     if const.any():
         out += amp[const].sum(axis=0)[None, :]
         _count("constant")

@@ -28,7 +28,7 @@ from typing import Any
 
 from xstack.errors import XstackError
 from xstack.sim.counts import FluxDistribution, s_min_for_count
-from xstack.sim.scene import PAPER_FIELD_CENTRE, Scene, load_scene
+from xstack.sim.scene import PAPER_FIELD_CENTER, Scene, load_scene
 
 PRESETS = tuple(f"paper-{i}" for i in range(1, 12))
 
@@ -46,10 +46,10 @@ def _vla_base() -> dict[str, Any]:
         "array": {"config": "vla.a"},
         "observation": {"date": "2014-01-01", "hour_angle": [-4.8, 4.8], "integration": 10.0,
                         "time_per_pointing": 33840.0},
-        "spectral": {"centre": 1.4e9, "bandwidth": 250e6, "channels": 10,
+        "spectral": {"center": 1.4e9, "bandwidth": 250e6, "channels": 10,
                      "polarizations": ["RR", "LL"]},
-        "pointings": {"mode": "single", "centre": list(PAPER_FIELD_CENTRE)},
-        "effects": {"primary_beam": "standard", "w_term": True, "noise": {"sigma": 0.01}},
+        "pointings": {"mode": "single", "center": list(PAPER_FIELD_CENTER)},
+        "effects": {"primary_beam": "auto", "w_term": True, "noise": {"sigma": 0.01}},
     }
 
 
@@ -58,11 +58,11 @@ def _alma_base() -> dict[str, Any]:
         "array": {"config": "alma.cycle1.2"},
         "observation": {"date": "2014-01-01", "hour_angle": [-1.5, 1.5], "integration": 6.0,
                         "time_per_pointing": 360.0},
-        "spectral": {"centre": 230e9, "bandwidth": 4e9, "channels": 100,
+        "spectral": {"center": 230e9, "bandwidth": 4e9, "channels": 100,
                      "polarizations": ["XX", "YY"]},
-        "pointings": {"mode": "hexagonal", "centre": list(PAPER_FIELD_CENTRE),
+        "pointings": {"mode": "hexagonal", "center": list(PAPER_FIELD_CENTER),
                       "size_arcsec": [100.0, 100.0], "spacing_arcsec": 20.0},
-        "effects": {"primary_beam": "standard", "w_term": True,
+        "effects": {"primary_beam": "auto", "w_term": True,
                     "noise": {"sigma": ALMA_SIGMA}},
     }
 
@@ -127,7 +127,7 @@ def _definition(n: int) -> dict[str, Any]:
             descr = "contiguous ALMA mosaic"
         elif n == 9:
             d["pointings"] = {"mode": "on_population", "population": "bright",
-                              "centre": list(PAPER_FIELD_CENTRE)}
+                              "center": list(PAPER_FIELD_CENTER)}
             pops = [_pop("bright", 10, fixed(30e-3), 300.0),
                     _pop("targets", 50, fixed(1e-3),
                          positions={"kind": "around_pointings", "radius_arcsec": 11.2})]

@@ -14,17 +14,17 @@ pointing), a ``spectral`` set-up, ``pointings``, ``effects`` (each opt-in) and a
     time_per_pointing = 33840.0     # seconds
 
     [spectral]
-    centre = 1.4e9
+    center = 1.4e9
     bandwidth = 250e6
     channels = 10
     polarizations = ["RR", "LL"]
 
     [pointings]
     mode = "single"                 # single | hexagonal | rectangular | on_population | list
-    centre = ["3h49m10.99s", "-30d00m00s"]
+    center = ["3h49m10.99s", "-30d00m00s"]
 
     [effects]
-    primary_beam = "standard"       # none | standard | airy | gaussian
+    primary_beam = "auto"       # none | auto (the telescope's standard beam) | airy | gaussian
     w_term = true
     noise = { sigma = 0.01 }        # or { sefd = 420.0 } or { tsys = 90.0 }
     flagging = { random_fraction = 0.0, shadowing = false }
@@ -55,12 +55,13 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _vocabulary
 from xstack._vocabulary import DEFAULT_PB_CUTOFF
 from xstack.errors import XstackError
 from xstack.sim.counts import FluxDistribution, flux_from_value
 
-#: The paper's field centre, 3h49m10.99s -30d00m00s (J2000), degrees.
-PAPER_FIELD_CENTRE = (57.2957916666667, -30.0)
+#: The paper's field center, 3h49m10.99s -30d00m00s (J2000), degrees.
+PAPER_FIELD_CENTER = (57.2957916666667, -30.0)
 
 
 @dataclass
@@ -121,7 +122,7 @@ class Effects:
 class Observation:
     """Time sampling. Pointings are observed one after the other, ``time_per_pointing``
     seconds each, in integrations of ``integration`` s, within the ``hour_angle`` window
-    (hours) of the field centre on ``date``; the whole run is centred in the window when it
+    (hours) of the field center on ``date``; the whole run is centered in the window when it
     fits and otherwise continues in the same window on the following days."""
 
     date: str = "2014-01-01"
@@ -132,28 +133,28 @@ class Observation:
 
 @dataclass
 class Spectral:
-    """Channels: ``channels`` equal channels over ``bandwidth`` (Hz) around ``centre`` (Hz)."""
+    """Channels: ``channels`` equal channels over ``bandwidth`` (Hz) around ``center`` (Hz)."""
 
-    centre: float = 1.4e9
+    center: float = 1.4e9
     bandwidth: float = 250e6
     channels: int = 10
     polarizations: list[str] = field(default_factory=lambda: ["RR", "LL"])
 
     def frequencies(self) -> tuple[np.ndarray, np.ndarray]:
-        """Channel centre frequencies and widths, Hz."""
+        """Channel center frequencies and widths, Hz."""
         width = self.bandwidth / self.channels
         k = np.arange(self.channels) - (self.channels - 1) / 2.0
-        return self.centre + k * width, np.full(self.channels, width)
+        return self.center + k * width, np.full(self.channels, width)
 
 
 @dataclass
 class Pointings:
-    """Phase centres: ``single`` (``centre``), a ``hexagonal`` or ``rectangular`` mosaic of
+    """Phase centers: ``single`` (``center``), a ``hexagonal`` or ``rectangular`` mosaic of
     ``size_arcsec`` with ``spacing_arcsec``, one pointing on each source of ``population``
     (``on_population``), or a ``list`` of ``positions`` [[ra_deg, dec_deg], ...]."""
 
     mode: str = "single"
-    centre: list[Any] = field(default_factory=lambda: list(PAPER_FIELD_CENTRE))
+    center: list[Any] = field(default_factory=lambda: list(PAPER_FIELD_CENTER))
     size_arcsec: list[float] = field(default_factory=lambda: [100.0, 100.0])
     spacing_arcsec: float = 20.0
     population: str = ""
@@ -163,14 +164,14 @@ class Pointings:
 @dataclass
 class Positions:
     """Source positions: uniform in a ``box`` (``size_arcsec`` [width, height] in the tangent
-    plane) or ``disc`` (``radius_arcsec``) around ``centre`` (default: the pointings'
-    centre), uniform in a disc of ``radius_arcsec`` around a randomly chosen pointing
+    plane) or ``disc`` (``radius_arcsec``) around ``center`` (default: the pointings'
+    center), uniform in a disc of ``radius_arcsec`` around a randomly chosen pointing
     (``around_pointings``), or a given ``list`` (``ra``, ``dec`` in degrees)."""
 
     kind: str = "box"
     size_arcsec: list[float] = field(default_factory=lambda: [300.0, 300.0])
     radius_arcsec: float = 0.0
-    centre: list[Any] = field(default_factory=list)
+    center: list[Any] = field(default_factory=list)
     ra: list[float] = field(default_factory=list)
     dec: list[float] = field(default_factory=list)
 
@@ -368,7 +369,7 @@ def load_scene(source: str | os.PathLike | Mapping[str, Any] | Scene) -> Scene:
 POINTING_MODES = ("single", "hexagonal", "rectangular", "on_population", "list")
 POSITION_KINDS = ("box", "disc", "around_pointings", "list")
 SHAPE_KINDS = ("point", "gaussian")
-PB_MODELS = ("none", "standard", "airy", "gaussian")
+PB_MODELS = _vocabulary.PRIMARY_BEAM_MODELS
 KNOWN_POLS = {"RR", "RL", "LR", "LL", "XX", "XY", "YX", "YY"}
 
 
@@ -410,8 +411,8 @@ def validate_scene(scene: Scene) -> Scene:
         raise XstackError(f"spectral.channels: need at least one channel (got {s.channels})")
     if not s.bandwidth > 0:
         raise XstackError(f"spectral.bandwidth: empty band (bandwidth {s.bandwidth} Hz)")
-    if not s.centre - s.bandwidth / 2 > 0:
-        raise XstackError("spectral.centre: the band must lie at positive frequencies")
+    if not s.center - s.bandwidth / 2 > 0:
+        raise XstackError("spectral.center: the band must lie at positive frequencies")
     if not s.polarizations or any(p not in KNOWN_POLS for p in s.polarizations) \
             or len(set(s.polarizations)) != len(s.polarizations):
         raise XstackError(f"spectral.polarizations: need distinct names from "
@@ -427,7 +428,7 @@ def validate_scene(scene: Scene) -> Scene:
         raise XstackError(f"pointings.population: no population named {p.population!r}")
     if p.mode == "list" and (not p.positions or any(len(x) != 2 for x in p.positions)):
         raise XstackError("pointings.positions: need a list of [ra_deg, dec_deg]")
-    _angle_pair(p.centre, "pointings.centre")
+    _angle_pair(p.center, "pointings.center")
     e = scene.effects
     if e.primary_beam not in PB_MODELS:
         raise XstackError(f"effects.primary_beam: unknown model {e.primary_beam!r} "
@@ -471,8 +472,8 @@ def validate_scene(scene: Scene) -> Scene:
             raise XstackError(f"{where}.positions.radius_arcsec: must be > 0")
         if pos.kind == "list" and (len(pos.ra) != q.count or len(pos.dec) != q.count):
             raise XstackError(f"{where}.positions.ra/dec: need {q.count} positions (count)")
-        if pos.centre:
-            _angle_pair(pos.centre, f"{where}.positions.centre")
+        if pos.center:
+            _angle_pair(pos.center, f"{where}.positions.center")
         sh = q.shape
         if sh.kind not in SHAPE_KINDS:
             raise XstackError(f"{where}.shape.kind: unknown {sh.kind!r} (point or gaussian)")
@@ -509,7 +510,7 @@ def _angle_pair(pair: list[Any], where: str) -> tuple[float, float]:
     return out[0] % 360.0, out[1]
 
 
-def angle_pair(pair: list[Any], where: str = "centre") -> tuple[float, float]:
+def angle_pair(pair: list[Any], where: str = "center") -> tuple[float, float]:
     """Public form of the (ra, dec) parser: degrees from numbers or sexagesimal strings."""
     return _angle_pair(pair, where)
 

@@ -4,7 +4,7 @@ Steps (each runs only when the scene asks for it; :attr:`SimulationResult.steps_
 the ones in the graph and :func:`xstack.sim.kernels.record_steps` counts those executed):
 
 ``model``         equation 1 for the sources of each pointing (kernel :mod:`xstack.sim.kernels`)
-``phase``         off-centre sources (point sources at the phase centre need no phasors)
+``phase``         off-center sources (point sources at the phase center need no phasors)
 ``w_term``        ``effects.w_term``
 ``extent``        Gaussian sources (a population with ``shape.kind = "gaussian"``)
 ``primary_beam``  ``effects.primary_beam`` (per channel and pointing, :mod:`xstack.beams`)
@@ -34,6 +34,7 @@ import numpy as np
 import xarray as xr
 from astropy.table import Table
 
+from xstack._result import Result
 from xstack._select import parallel_hand_mask
 from xstack.beams import PrimaryBeam, standard_beam
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, lm_to_radec, radec_to_lmn
@@ -51,8 +52,8 @@ CHUNK_BYTES = 32 * 1024**2
 _MAX_REDRAWS = 200
 
 
-@dataclass
-class SimulationResult:
+@dataclass(kw_only=True)
+class SimulationResult(Result):
     """What :func:`simulate` wrote.
 
     Attributes
@@ -78,6 +79,16 @@ class SimulationResult:
     seed: int = 0
     scale: float = 1.0
     pointings: list[tuple[float, float]] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary: the store, catalogs (paths and source counts), steps, seed,
+        scale and pointing centers (deg)."""
+        return {"store": str(self.store), "seed": int(self.seed), "scale": float(self.scale),
+                "n_visibilities": int(self.n_visibilities), "steps_run": sorted(self.steps_run),
+                "catalogs": {name: {"path": str(self.catalog_paths.get(name, "")),
+                                    "n_sources": len(table)}
+                             for name, table in self.catalogs.items()},
+                "pointings_deg": [[math.degrees(a), math.degrees(d)] for a, d in self.pointings]}
 
 
 @dataclass
@@ -120,7 +131,7 @@ def _array(scene: Scene) -> arr.AntennaArray:
 
 
 def _grid_offsets(mode: str, size: list[float], spacing: float) -> np.ndarray:
-    """(x, y) offsets (arcsec) of a mosaic grid strictly inside the size box, centred."""
+    """(x, y) offsets (arcsec) of a mosaic grid strictly inside the size box, centered."""
     w, h = size
     pts = []
     if mode == "rectangular":
@@ -147,13 +158,13 @@ def _grid_offsets(mode: str, size: list[float], spacing: float) -> np.ndarray:
 
 
 def _offsets_to_radec(x_arcsec: np.ndarray, y_arcsec: np.ndarray,
-                      centre: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+                      center: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
     return lm_to_radec(np.asarray(x_arcsec) * ARCSEC, np.asarray(y_arcsec) * ARCSEC,
-                       centre[0], centre[1])
+                       center[0], center[1])
 
 
 def _draw_population(i: int, scene: Scene, seed: int, pointings: np.ndarray | None,
-                     centre: tuple[float, float], covered: Any = None) -> dict[str, np.ndarray]:
+                     center: tuple[float, float], covered: Any = None) -> dict[str, np.ndarray]:
     """Positions, fluxes and sizes of population ``i``.
 
     ``covered(ra, dec) -> bool array``: where a source can be observed (inside some pointing's
@@ -165,8 +176,8 @@ def _draw_population(i: int, scene: Scene, seed: int, pointings: np.ndarray | No
     rng = _seed_rng(seed, 1, i)
     n = q.count
     pos = q.positions
-    c = tuple(np.radians(angle_pair(pos.centre, f"populations[{i}].positions.centre"))) \
-        if pos.centre else centre
+    c = tuple(np.radians(angle_pair(pos.center, f"populations[{i}].positions.center"))) \
+        if pos.center else center
     if pos.kind == "list":
         ra, dec = np.radians(np.asarray(pos.ra, float)), np.radians(np.asarray(pos.dec, float))
     elif pos.kind in ("box", "disc"):
@@ -238,7 +249,7 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
     array = _array(scene)
     freq, width = scene.spectral.frequencies()
     steps: set[str] = set()
-    centre = tuple(np.radians(angle_pair(scene.pointings.centre, "pointings.centre")))
+    center = tuple(np.radians(angle_pair(scene.pointings.center, "pointings.center")))
     telescope = array.telescope
     dish = float(np.mean(array.diameters))
     check_beam = standard_beam(telescope, dish, cutoff=scene.effects.pb_cutoff)
@@ -248,29 +259,29 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
     drawn: dict[int, dict[str, np.ndarray]] = {}
     names = [q.name for q in scene.populations]
     if pm.mode == "single":
-        pointings = np.array([centre])
+        pointings = np.array([center])
     elif pm.mode in ("hexagonal", "rectangular"):
         off = _grid_offsets(pm.mode, pm.size_arcsec, pm.spacing_arcsec)
-        pointings = np.column_stack(_offsets_to_radec(off[:, 0], off[:, 1], centre))
+        pointings = np.column_stack(_offsets_to_radec(off[:, 0], off[:, 1], center))
     elif pm.mode == "list":
         pointings = np.radians(np.asarray(pm.positions, float))
     else:
         k = names.index(pm.population)
-        drawn[k] = _draw_population(k, scene, seed, None, centre)
+        drawn[k] = _draw_population(k, scene, seed, None, center)
         pointings = np.column_stack([drawn[k]["ra"], drawn[k]["dec"]])
         if len(pointings) == 0:
             raise XstackError(f"pointings.population: population {pm.population!r} is empty")
     def covered(ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
         sep = angular_separation(ra[:, None], dec[:, None], pointings[None, :, 0],
                                  pointings[None, :, 1])
-        return check_beam(sep, scene.spectral.centre).max(axis=1) >= scene.effects.pb_cutoff
+        return check_beam(sep, scene.spectral.center).max(axis=1) >= scene.effects.pb_cutoff
 
     for i in range(len(scene.populations)):
         if i not in drawn:
-            drawn[i] = _draw_population(i, scene, seed, pointings, centre, covered)
+            drawn[i] = _draw_population(i, scene, seed, pointings, center, covered)
 
-    # every source must be inside some pointing (standard beam, centre frequency)
-    fc = scene.spectral.centre
+    # every source must be inside some pointing (standard beam, center frequency)
+    fc = scene.spectral.center
     catalogs: dict[str, Table] = {}
     for i, q in enumerate(scene.populations):
         d = drawn[i]
@@ -305,7 +316,7 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
     e = scene.effects
     beam = None
     if e.primary_beam != "none":
-        beam = {"standard": lambda: standard_beam(telescope, dish, cutoff=e.pb_cutoff),
+        beam = {"auto": lambda: standard_beam(telescope, dish, cutoff=e.pb_cutoff),
                 "airy": lambda: PrimaryBeam("airy", dish, 0.0, e.pb_cutoff),
                 "gaussian": lambda: PrimaryBeam("gaussian", dish, 0.0, e.pb_cutoff)
                 }[e.primary_beam]()
@@ -324,12 +335,12 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
             steps.add("primary_beam")
         if e.w_term:
             steps.add("w_term")
-        off_centre = np.ones(flux.size, bool)
+        off_center = np.ones(flux.size, bool)
         if len(pointings) == 1:
-            off_centre = (ra != pointings[0, 0]) | (dec != pointings[0, 1])
-        if np.any(off_centre & (flux != 0)):
+            off_center = (ra != pointings[0, 0]) | (dec != pointings[0, 1])
+        if np.any(off_center & (flux != 0)):
             steps.add("phase")
-            # smearing factors are 1 for sources at the phase centre: only with phases
+            # smearing factors are 1 for sources at the phase center: only with phases
             if e.bandwidth_smearing:
                 steps.add("bandwidth_smearing")
             if e.time_smearing:
@@ -372,13 +383,13 @@ def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None
     nchan, npol = ctx["freq"].size, len(ctx["pols"])
     out = np.zeros((nt, nb, nchan, npol), dtype=np.complex128)
     if ctx["flux"].size:
-        ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["centre"])
+        ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["center"])
         # per-antenna phasors: one sincos pair per antenna (not per baseline) and source
         model = kernels.model_visibilities_antenna(
             ant, a1, a2, ctx["freq"], ctx["l"], ctx["m"], ctx["nm1"], ctx["flux"], ctx["att"],
             ctx["fwhm"] if ctx["extended"].any() else None, parallel=False,
             channel_width=ctx["smear_width"], integration_time=ctx["smear_time"],
-            dec0=ctx["centre"][1])
+            dec0=ctx["center"][1])
         out[..., ctx["parallel"]] = model[..., None]
     sigma = ctx["sigma"]
     if sigma is not None:
@@ -394,7 +405,7 @@ def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None
 def _uvw_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
     (t0, t1), (b0, b1) = block_info[0]["array-location"][:2]
     return arr.baseline_uvw(ctx["positions"], ctx["a1"][b0:b1], ctx["a2"][b0:b1],
-                            ctx["times"][t0:t1], *ctx["centre"])
+                            ctx["times"][t0:t1], *ctx["center"])
 
 
 def _flag_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
@@ -410,7 +421,7 @@ def _flag_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = Non
             out[k] |= u[b0:b1] < frac
     if ctx["shadowing"]:
         kernels._count("flag_shadow")
-        ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["centre"])
+        ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["center"])
         sh = arr.shadowed_antennas(ant, ctx["diameters"])
         bad = sh[:, ctx["a1"][b0:b1]] | sh[:, ctx["a2"][b0:b1]]
         out |= bad[:, :, None, None]
@@ -419,24 +430,24 @@ def _flag_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = Non
 
 def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
     scene = plan.scene
-    centre = (float(plan.pointings[p, 0]), float(plan.pointings[p, 1]))
+    center = (float(plan.pointings[p, 0]), float(plan.pointings[p, 1]))
     times = plan.times[p]
     a1, a2 = baseline_pairs(plan.array.n_antennas)
     nt, nbl, nchan, npol = times.size, a1.size, plan.freq.size, len(plan.pols)
     dtype = np.dtype(scene.visibility_dtype)
 
-    l, m, _, nm1 = radec_to_lmn(plan.ra, plan.dec, *centre)
+    l, m, _, nm1 = radec_to_lmn(plan.ra, plan.dec, *center)
     att = None
     keep = plan.flux != 0
     if plan.beam is not None:
-        sep = angular_separation(plan.ra, plan.dec, *centre)
+        sep = angular_separation(plan.ra, plan.dec, *center)
         att = plan.beam(sep[:, None], plan.freq[None, :])
         keep &= att.max(axis=1, initial=0.0) > 0
         att = np.ascontiguousarray(att[keep])
     fwhm = plan.fwhm[keep]
     ctx = {
         "a1": a1, "a2": a2, "positions": plan.array.positions, "diameters": plan.array.diameters,
-        "times": times, "centre": centre, "freq": plan.freq, "pols": plan.pols,
+        "times": times, "center": center, "freq": plan.freq, "pols": plan.pols,
         "parallel": _parallel_hands(plan.pols), "l": l[keep], "m": m[keep],
         "nm1": nm1[keep] if scene.effects.w_term else None, "flux": plan.flux[keep],
         "att": att, "fwhm": fwhm, "extended": fwhm > 0, "sigma": plan.sigma,
@@ -474,7 +485,7 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         visibility=vis, weight=weight, flag=flag, uvw=uvw, time=times, antenna1=a1,
         antenna2=a2, antenna_names=plan.array.names, antenna_positions=plan.array.positions,
         dish_diameters=plan.array.diameters, frequency=plan.freq, channel_width=plan.width,
-        polarization=plan.pols, phase_center=centre, field_name=f"pointing{p}", field_id=p,
+        polarization=plan.pols, phase_center=center, field_name=f"pointing{p}", field_id=p,
         spectral_window_id=0, telescope_name=plan.array.telescope,
         integration_time=float(scene.observation.integration),
         attrs={"source": "xstack simulate", "scene_name": scene.name,

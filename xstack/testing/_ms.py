@@ -18,7 +18,7 @@ SITES = {
     "MEERKAT": (21.443888, -30.713055, 1038.0, 13.5),
 }
 
-#: Paper field centre (RA 3h49m10.99s, Dec -30 deg, J2000), radians.
+#: Paper field center (RA 3h49m10.99s, Dec -30 deg, J2000), radians.
 DEFAULT_PHASE_CENTER = (np.deg2rad((3 + 49 / 60 + 10.99 / 3600) * 15.0), np.deg2rad(-30.0))
 
 #: Astropy frame for a casacore direction reference (besides J2000/ICRS, treated as ICRS).
@@ -116,7 +116,7 @@ def make_test_ms(
     The main table is time-ordered (time, then spectral window, then baseline, as CASA writes
     it), its big columns use tiled storage managers with a fixed cell shape when every
     spectral window has the same number of channels, and UVW are computed from ITRF antenna
-    positions for each field's phase centre. Data are written block by block, so large MSs
+    positions for each field's phase center. Data are written block by block, so large MSs
     (for benchmarks) do not need their size in memory.
 
     Parameters

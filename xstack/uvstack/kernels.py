@@ -222,7 +222,7 @@ def stack_phasor(uvw, frequency, l, m, n_minus_1, weight, inv_attenuation, *,
     frequency : (nchan,) array
         Channel frequencies, Hz.
     l, m, n_minus_1 : (nsrc,) arrays
-        Direction cosines of the stacking positions relative to the phase centre
+        Direction cosines of the stacking positions relative to the phase center
         (:func:`xstack.coords.radec_to_lmn`).
     weight : (nsrc,) array
         Position weights W_k (>= 0, positive sum).

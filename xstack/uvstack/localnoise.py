@@ -3,7 +3,7 @@
 The paper weights image stamps by W_k = 1/sigma_k^2 with sigma_k "the brightness standard
 deviation" of a stamp of ~300 beam areas around position k, outside a central circle of
 radius BMAJ, and uses "the same local noise estimators" for uv-stacking (§3.3). This module
-measures that sigma_k for :func:`xstack.uvstack.stack.uvstack` (``weighting="sigma2"``,
+measures that sigma_k for :func:`xstack.uvstack.stack.stack_uv` (``weighting="sigma2"``,
 ``noise_image=``). Stamps, the central mask and the paper's plain standard deviation come
 from :mod:`xstack.imstack.kernels`; images are read by :func:`xstack.imstack.io.read_image`
 (any FITS image with a celestial WCS, an HDU, or an in-memory
@@ -237,9 +237,9 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
         Catalog path or :class:`astropy.table.Table` (``ra``, ``dec`` in degrees), or an
         (N, 2) array of (ra, dec) in degrees.
     stamp_size
-        Stamp side in pixels, centred on the pixel nearest to each position. Default: about
+        Stamp side in pixels, centered on the pixel nearest to each position. Default: about
         :data:`STAMP_BEAM_AREAS` beam areas (paper §3.2), odd, at least 4 mask radii and at
-        most the image; 65 pixels (the paper's 64, made odd so the mask is centred) if the
+        most the image; 65 pixels (the paper's 64, made odd so the mask is centered) if the
         image has no beam.
     mask_radius_arcsec
         Radius of the central circle left out of sigma_k (the stacked source and its main

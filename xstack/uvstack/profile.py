@@ -81,7 +81,7 @@ def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any
     Returns
     -------
     astropy.table.Table
-        Columns ``uvdist_klambda`` (bin centre), ``uvdist_m`` (centre at the mean
+        Columns ``uvdist_klambda`` (bin center), ``uvdist_m`` (center at the mean
         wavelength), ``bin_lo_klambda``, ``bin_hi_klambda``, ``re_jy``, ``re_err_jy``,
         ``im_jy``, ``im_err_jy``, ``sum_weight``, ``count``. Empty bins hold NaN.
     """
@@ -159,10 +159,10 @@ def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any
         # scatter of a single visibility is unknown: no error from one sample
         var_re = np.where(count > 1, var_re * count / (count - 1), np.nan)
         var_im = np.where(count > 1, var_im * count / (count - 1), np.nan)
-    centres = 0.5 * (edges[1:] + edges[:-1])
+    centers = 0.5 * (edges[1:] + edges[:-1])
     t = Table()
-    t["uvdist_klambda"] = centres / 1e3
-    t["uvdist_m"] = centres * lam
+    t["uvdist_klambda"] = centers / 1e3
+    t["uvdist_m"] = centers * lam
     t["bin_lo_klambda"] = edges[:-1] / 1e3
     t["bin_hi_klambda"] = edges[1:] / 1e3
     t["re_jy"] = re
@@ -190,7 +190,7 @@ def draw_uv_profile(ax: Any, table: Table, *, scale: float, unit: str) -> None:
     """Draw a :func:`uv_profile` table on matplotlib Axes ``ax``.
 
     Re V (circles, data line ``gid="re"``) and Im V (squares, ``gid="im"``) with 1σ errors
-    against the bin centre in kλ, a zero line, and the axis labels. The visibilities are
+    against the bin center in kλ, a zero line, and the axis labels. The visibilities are
     multiplied by ``scale`` (e.g. 1e6 for µJy; ``unit`` is its label).
     """
     x = np.asarray(table["uvdist_klambda"])

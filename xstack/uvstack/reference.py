@@ -20,9 +20,9 @@ from xstack.coords import SPEED_OF_LIGHT, parse_distance
 
 
 def unit_vectors(ra: np.ndarray, dec: np.ndarray, ra0: float, dec0: float) -> np.ndarray:
-    """Unit vectors (npos, 3) of (ra, dec) in the (l, m, n) frame of phase centre (ra0, dec0).
+    """Unit vectors (npos, 3) of (ra, dec) in the (l, m, n) frame of phase center (ra0, dec0).
 
-    Built by rotating equatorial Cartesian vectors: e_l = east, e_m = north, e_n = centre.
+    Built by rotating equatorial Cartesian vectors: e_l = east, e_m = north, e_n = center.
     """
     ra = np.atleast_1d(np.asarray(ra, dtype=np.float64))
     dec = np.atleast_1d(np.asarray(dec, dtype=np.float64))
@@ -40,7 +40,7 @@ def reference_uvstack(partitions: list[tuple[str, xr.Dataset]], ra_deg: Any, dec
     """Stack in plain numpy; returns ``flux_jy``, ``flux_err_jy``, ``n_visibilities``,
     ``stacked`` (name -> complex128 VISIBILITY array) and ``sum_weight`` (name -> sum W_l).
 
-    Same conventions as :func:`xstack.uvstack.stack.uvstack` (``docs/uvstack.md``); the
+    Same conventions as :func:`xstack.uvstack.stack.stack_uv` (``docs/uvstack.md``); the
     primary beam is ``none`` or a model name for :func:`xstack.beams.standard_beam`.
     Autocorrelations are left out. ``sigma2`` with ``sigma`` is implemented for one
     partition only (the per-pointing rule of several is checked analytically in the tests).

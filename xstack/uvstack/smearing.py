@@ -1,6 +1,6 @@
 """Expected smearing loss of stacking positions, and which data carry smearing (plan time).
 
-A source at (l, m) off the phase centre loses flux to bandwidth and time-average smearing
+A source at (l, m) off the phase center loses flux to bandwidth and time-average smearing
 (:mod:`xstack.smearing`). uv-stacking corrects for it as for the primary beam: the loss
 ``L_k(nu)`` of position k is the weighted mean smearing factor over the visibilities of its
 pointing, per channel, and the coefficient of k becomes ``W_k / (A_k L_k) / sum W``, so the
@@ -99,7 +99,7 @@ def loss_factors(ds: xr.Dataset, l: np.ndarray, m: np.ndarray, n_minus_1: np.nda
         The partition (UVW, WEIGHT, FLAG, ``frequency``, ``channel_width``, ``time`` with its
         ``integration_time`` attribute, ``phase_center``).
     l, m, n_minus_1
-        (npos,) direction cosines of the positions relative to the phase centre.
+        (npos,) direction cosines of the positions relative to the phase center.
     bandwidth, time
         Which effects to include (without ``integration_time`` the time effect is 0).
     pol_mask

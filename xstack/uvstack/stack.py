@@ -1,6 +1,6 @@
 """uv-stacking (paper section 3.3) as a lazy dask/xarray pipeline: the public API.
 
-``uvstack(data, positions, ...)`` phase-rotates every visibility of every partition by the
+``stack_uv(data, positions, ...)`` phase-rotates every visibility of every partition by the
 normalised phasor of equation 4 (:mod:`xstack.uvstack.kernels`), multiplies the visibility
 weights of each pointing by the sum of its position weights (section 3.3.2), and estimates
 the point-source flux of the stack as the weighted mean of Re V over the unflagged parallel
@@ -29,6 +29,7 @@ from astropy.table import Table
 from xstack import _vocabulary
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions, grouped_partitions
+from xstack._result import Result
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack._select import parallel_hand_mask, sky_correlations, uv_limits, uv_range_mask
 from xstack.beams import DEFAULT_PB_CUTOFF, dish_diameter, inside_field, standard_beam
@@ -58,8 +59,8 @@ _NSUMS = kernels.NSUMS
 _EMPIRICAL_SUMS = True
 
 
-@dataclass
-class StackResult:
+@dataclass(kw_only=True)
+class StackResult(Result):
     """The result of :func:`uvstack`.
 
     Attributes
@@ -132,6 +133,11 @@ class StackResult:
             "options": self.options,
         }
 
+    def table(self) -> Table:
+        """One row per catalog position: the catalog with ``used``, ``weight_used``,
+        ``attenuation``, ``smearing_loss`` (one column per partition) and ``n_pointings``."""
+        return Table(self.positions, copy=True)
+
 
 # --- inputs -------------------------------------------------------------------------------
 
@@ -152,7 +158,7 @@ class FitsBeam:
     """A primary-beam image (FITS, CASA ``.pb`` style) used as A(offset, frequency).
 
     The image is taken to describe the beam of *any* pointing: a position's offset (l, m)
-    from the pointing centre is looked up at the same offset from the image's reference
+    from the pointing center is looked up at the same offset from the image's reference
     direction (CRVAL). With a spectral axis the plane nearest in frequency is used per
     channel; without one the single plane is used for every channel. Bilinear interpolation;
     zero outside the image and where the image is blank (NaN).
@@ -203,7 +209,7 @@ class FitsBeam:
         self.path = str(path)
 
     def attenuation(self, l: np.ndarray, m: np.ndarray, frequency: np.ndarray) -> np.ndarray:
-        """A(l, m, nu) -> (npos, nchan) for offsets (l, m) from the pointing centre."""
+        """A(l, m, nu) -> (npos, nchan) for offsets (l, m) from the pointing center."""
         from scipy.ndimage import map_coordinates
 
         from xstack.coords import lm_to_radec
@@ -606,7 +612,7 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
 
 # --- public API ---------------------------------------------------------------------------
 
-def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: Any = "auto",
+def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: Any = "auto",
             pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None, sigma: Any = None,
             noise_image: Any = None, polarizations: Any = "parallel", engine: str = "auto",
             out: str | os.PathLike | None = None, overwrite: bool = False,
@@ -621,7 +627,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
         MeasurementSet path (converted to a temporary store), a Dataset, a dict of Datasets
         (any input of :func:`xstack._inputs.partitions`), or a list of these: several
         datasets are stacked together, every partition (pointing x window) about its own
-        phase centre.
+        phase center.
     positions
         :class:`astropy.table.Table` or catalog path with ``ra``, ``dec`` in degrees, or
         coordinates (:meth:`xstack._inputs.Positions.from_any`); optional ``weight`` for
@@ -799,7 +805,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
     used_pos = np.zeros(npos, dtype=bool)
     for p in active:
         used_pos |= p.used & (p.weight > 0)
-    # the stacked dataset's phase centre: the positions' mean direction (the first position
+    # the stacked dataset's phase center: the positions' mean direction (the first position
     # if they cancel)
     center = mean_direction(ra[used_pos], dec[used_pos]) or \
         (float(ra[used_pos][0]), float(dec[used_pos][0]))
@@ -905,7 +911,7 @@ def uvstack(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: A
             f"visibility scatter ({measured['flux_err_empirical_jy']:.3g} Jy) differ by "
             f"{ratio:.3g}x: the weights are mis-scaled"
             + ("" if ratio < 1 else ", or sky signal changes across channels (bright sources "
-               "far from the phase centre: subtract them first)")
+               "far from the phase center: subtract them first)")
             + "; choose the error printed first with errors='weights' (flux_err_jy) or "
             "errors='empirical' (flux_err_empirical_jy)",
             option="errors"),

@@ -272,24 +272,24 @@ def _ms_info(path: Path, datacolumn: str = "DATA") -> dict[str, Any]:
     msread.check_ms(path)
     full = str(path.resolve())
     try:
-        column, vis_dtype = convert._check_datacolumn(full, datacolumn)
+        column, vis_dtype = convert.check_datacolumn(full, datacolumn)
         meta = msread.read_meta(full)
-        index = msread.read_index(full, (*convert._INDEX_COLUMNS, "EXPOSURE"))
+        index = msread.read_index(full, (*convert.INDEX_COLUMNS, "EXPOSURE"))
         time = index["TIME"]
         if time.size == 0:
             raise XstackError(f"{path}: the MeasurementSet has no rows")
-        plans = convert._plan_partitions(index, meta, str(path))
+        plans = convert.plan_partitions(index, meta, str(path))
         tally = _Tally()
         itemsize = np.dtype(vis_dtype).itemsize
         for plan in plans:
-            spec = convert._block_spec(full, plan, meta, column, vis_dtype)
+            spec = convert.block_spec(full, plan, meta, column, vis_dtype)
             pols = meta.pol_names[int(meta.ddid_pol[plan.ddid])]
             pol_mask = parallel_hand_mask(pols)
             auto = plan.antenna1 == plan.antenna2
-            ct, cb = convert._chunk_sizes(plan.times.size, plan.antenna1.size, spec.n_channels,
+            ct, cb = convert.chunk_sizes(plan.times.size, plan.antenna1.size, spec.n_channels,
                                           spec.n_pols, itemsize, {})
             sampled = 0
-            for t0, t1, b0, b1, rows, ti, bi in convert._blocks(plan, ct, cb):
+            for t0, t1, b0, b1, rows, ti, bi in convert.chunk_blocks(plan, ct, cb):
                 block = msread.read_block(spec, rows, ti, bi, t1 - t0, b1 - b0, plan.times[t0:t1])
                 tally.add(block["VISIBILITY"], block["WEIGHT"], block["FLAG"], pol_mask,
                           auto[b0:b1], sample=sampled < SAMPLE_CELLS)

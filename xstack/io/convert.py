@@ -57,12 +57,12 @@ def _encoding() -> dict[str, dict[str, Any]]:
             "FLAG": {"compressors": BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")}}
 
 
-_INDEX_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "SCAN_NUMBER",
+INDEX_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "SCAN_NUMBER",
                   "INTERVAL")
 
 
 @dataclass
-class _Plan:
+class PartitionPlan:
     """One partition: its rows and the (time, baseline) grid they fall on."""
 
     name: str
@@ -109,7 +109,7 @@ def parse_chunks(text: str | Mapping[str, int] | None) -> dict[str, int]:
     return chunks
 
 
-def _check_datacolumn(path: str, datacolumn: str) -> tuple[str, str]:
+def check_datacolumn(path: str, datacolumn: str) -> tuple[str, str]:
     """Validate the data column; return (column name, numpy complex dtype name)."""
     col = str(datacolumn).upper()
     info = msread.column_info(path, col)
@@ -146,7 +146,7 @@ def _has_duplicates(cell: np.ndarray, n_cells: int) -> bool:
     return bool(np.any(ordered[1:] == ordered[:-1]))
 
 
-def _plan_partitions(index: dict[str, np.ndarray], meta: msread.MSMeta, where: str) -> list[_Plan]:
+def plan_partitions(index: dict[str, np.ndarray], meta: msread.MSMeta, where: str) -> list[PartitionPlan]:
     """Group rows into partitions and place every row on its partition's grid."""
     time, a1, a2 = index["TIME"], index["ANTENNA1"], index["ANTENNA2"]
     ddid, fid = index["DATA_DESC_ID"], index["FIELD_ID"]
@@ -165,7 +165,7 @@ def _plan_partitions(index: dict[str, np.ndarray], meta: msread.MSMeta, where: s
     order = np.argsort(group_key, kind="stable")
     keys, starts = np.unique(group_key[order], return_index=True)
     bounds = [*starts[1:], nrow]
-    plans: list[_Plan] = []
+    plans: list[PartitionPlan] = []
     names: set[str] = set()
     for _key, s0, s1 in zip(keys, starts, bounds):
         grows = np.sort(order[s0:s1])
@@ -190,7 +190,7 @@ def _plan_partitions(index: dict[str, np.ndarray], meta: msread.MSMeta, where: s
 
 def _grid(rows: np.ndarray, time: np.ndarray, a1: np.ndarray, a2: np.ndarray, scan: np.ndarray,
           interval: np.ndarray, ddid: int, field_id: int, scan_id: int | None, meta: msread.MSMeta,
-          where: str) -> _Plan:
+          where: str) -> PartitionPlan:
     times, t_index = _codes(time[rows])
     n_ant = max(len(meta.antenna_names), 1)
     bl = a1[rows].astype(np.int64) * n_ant + a2[rows]
@@ -216,14 +216,17 @@ def _grid(rows: np.ndarray, time: np.ndarray, a1: np.ndarray, a2: np.ndarray, sc
     scan_of_time[t_index] = scan[rows]
     spw = int(meta.ddid_spw[ddid])
     ivals = interval[rows]
-    return _Plan(name=partition_name(spw, field_id, scan_id), ddid=ddid, field_id=field_id,
+    return PartitionPlan(name=partition_name(spw, field_id, scan_id), ddid=ddid, field_id=field_id,
                  scan=scan_id, rows=rows, t_index=t_index.astype(np.int64),
                  b_index=b_index.astype(np.int64), times=times, scan_of_time=scan_of_time,
                  antenna1=pairs[:, 0].astype(np.int32), antenna2=pairs[:, 1].astype(np.int32),
                  interval=float(np.median(ivals)) if ivals.size else 0.0)
 
 
-def _block_spec(path: str, plan: _Plan, meta: msread.MSMeta, column: str, vis_dtype: str) -> msread.BlockSpec:
+def block_spec(path: str, plan: PartitionPlan, meta: msread.MSMeta, column: str,
+               vis_dtype: str) -> msread.BlockSpec:
+    """How to read one partition's chunks from the MS: its row span, shapes and the optional
+    columns (WEIGHT_SPECTRUM, SIGMA...) it has."""
     first, last = int(plan.rows.min()), int(plan.rows.max())
 
     def defined(col: str) -> bool:
@@ -248,7 +251,7 @@ def _block_spec(path: str, plan: _Plan, meta: msread.MSMeta, column: str, vis_dt
         has_centroid=defined("TIME_CENTROID"), has_exposure=defined("EXPOSURE"))
 
 
-def _chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,
+def chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,
                  chunks: Mapping[str, int]) -> tuple[int, int]:
     """(time, baseline) chunk sizes: the user's, else ~DEFAULT_CHUNK_BYTES of VISIBILITY."""
     per_bl = max(1, n_chan * n_pol * itemsize)
@@ -257,8 +260,8 @@ def _chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,
     return min(max(1, ct), max(n_time, 1)), min(max(1, cb), max(n_bl, 1))
 
 
-def _blocks(plan: _Plan, ct: int, cb: int) -> Iterator[tuple[int, int, int, int, np.ndarray, np.ndarray,
-                                                              np.ndarray]]:
+def chunk_blocks(plan: PartitionPlan, ct: int, cb: int
+                 ) -> Iterator[tuple[int, int, int, int, np.ndarray, np.ndarray, np.ndarray]]:
     """(t0, t1, b0, b1, rows, t_index, b_index) of every chunk, rows ascending within a chunk."""
     nt, nb = plan.times.size, plan.antenna1.size
     t_edges = [*range(0, nt, ct), nt]
@@ -275,7 +278,7 @@ def _blocks(plan: _Plan, ct: int, cb: int) -> Iterator[tuple[int, int, int, int,
                    bi[sel][o] - b_edges[j])
 
 
-def _placeholders(plan: _Plan, spec: msread.BlockSpec, ct: int, cb: int) -> dict[str, Any]:
+def _placeholders(plan: PartitionPlan, spec: msread.BlockSpec, ct: int, cb: int) -> dict[str, Any]:
     """Never-computed dask arrays that give the store its array shapes, dtypes and chunks."""
     import dask.array as da
 
@@ -338,7 +341,7 @@ def _chunk_is_direct(rows: np.ndarray, t_index: np.ndarray, b_index: np.ndarray,
     return int(cell[0]) == 0 and bool(np.all(np.diff(cell) == 1))
 
 
-def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: list[tuple[int, int]],
+def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], sizes: list[tuple[int, int]],
           progress: bool, description: str) -> None:
     """Read every chunk from the MS and write it into the store.
 
@@ -432,7 +435,7 @@ def _fill(root: Any, plans: list[_Plan], specs: list[msread.BlockSpec], sizes: l
                     settle(slot)
                 buffers = [msread.block_buffers(spec, ct, cb) for _ in range(2)]
                 ring = _BatchRing(3, (msread.batch_rows(spec), spec.n_channels, spec.n_pols), spec.vis_dtype)
-                for k, (t0, t1, b0, b1, rows, ti, bi) in enumerate(_blocks(plan, ct, cb)):
+                for k, (t0, t1, b0, b1, rows, ti, bi) in enumerate(chunk_blocks(plan, ct, cb)):
                     slot = k % 2
                     settle(slot)  # its buffer set is free again
                     buf = buffers[slot]
@@ -536,26 +539,26 @@ def convert_ms(
     ms_path = msread.check_ms(ms)
     out = Path(out)
     check_output(out, overwrite)
-    chunk_sizes = parse_chunks(chunks)
+    requested_chunks = parse_chunks(chunks)
     path = str(ms_path.resolve())
     if os.path.abspath(out) == path:
         raise XstackError("the output store must not be the MeasurementSet itself")
     try:
-        column, vis_dtype = _check_datacolumn(path, datacolumn)
+        column, vis_dtype = check_datacolumn(path, datacolumn)
         meta = msread.read_meta(path)
-        index = msread.read_index(path, _INDEX_COLUMNS)
+        index = msread.read_index(path, INDEX_COLUMNS)
         if index["TIME"].size == 0:
             raise XstackError(f"{ms}: the MeasurementSet has no rows")
-        plans = _plan_partitions(index, meta, str(ms))
+        plans = plan_partitions(index, meta, str(ms))
         del index
         itemsize = np.dtype(vis_dtype).itemsize
         partitions = {}
         specs: list[msread.BlockSpec] = []
         sizes: list[tuple[int, int]] = []
         for plan in plans:
-            spec = _block_spec(path, plan, meta, column, vis_dtype)
-            ct, cb = _chunk_sizes(plan.times.size, plan.antenna1.size, spec.n_channels, spec.n_pols,
-                                  itemsize, chunk_sizes)
+            spec = block_spec(path, plan, meta, column, vis_dtype)
+            ct, cb = chunk_sizes(plan.times.size, plan.antenna1.size, spec.n_channels, spec.n_pols,
+                                  itemsize, requested_chunks)
             arrays = _placeholders(plan, spec, ct, cb)
             specs.append(spec)
             sizes.append((ct, cb))

@@ -129,6 +129,9 @@ def _group_numba(uvw, fc, step, even, reseed, vw_re, vw_im, ws, row_ok, l, m, n1
         model[g] += macc
 
 
+# The row/channel phasor recurrence below repeats _group_numba's on purpose (the only copy
+# the duplicates audit keeps, with the antenna loops of uvstack.kernels): numba vectorises each
+# prange body as one unit over its 1-D scratch views; a shared callee would need its own.
 @numba.njit(parallel=True, cache=True, fastmath=_FM)
 def _position_numba(uvw, fc, step, even, reseed, vw_re, vw_im, row_ok, l, m, n1, a, X):
     nrow = uvw.shape[0]

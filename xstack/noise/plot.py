@@ -52,11 +52,7 @@ def plot_histogram(result: Any, path: str | os.PathLike, *, overwrite: bool = Fa
     ax.set_title(f"{result.method}: R={result.realizations}, N={result.n_positions}, "
                  f"bias {bias:.3g} {label}", fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_output(path, overwrite=overwrite) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, overwrite)
 
 
 def plot_profiles(result: Any, path: str | os.PathLike, *, overwrite: bool = False,
@@ -83,6 +79,13 @@ def plot_profiles(result: Any, path: str | os.PathLike, *, overwrite: bool = Fal
     ax.set_ylabel(f"stacked Re V [{unit.replace('uJy', 'µJy')}]")
     ax.set_title(f"uv-profiles of {len(vals)} {result.method} stacks", fontsize=9)
     ax.legend(fontsize=8)
+    return _save(fig, path, overwrite)
+
+
+def _save(fig: Any, path: str | os.PathLike, overwrite: bool) -> Path:
+    """Lay out ``fig``, write it as a PNG atomically, and free it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     with atomic_output(path, overwrite=overwrite) as tmp:
         fig.savefig(tmp, format="png", dpi=120)

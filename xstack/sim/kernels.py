@@ -275,6 +275,44 @@ def _antenna_parallel(u, v, w, has_w, freq, uniform, l, m, nm1, amp, gcoef, has_
                       has_s, swidth, sdt, sin_d, cos_d, out)
 
 
+def _source_terms(flux: np.ndarray, attenuation: Any, fwhm: Any, nchan: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-source amplitudes (nsrc, nchan) = flux x attenuation (Jy) and the Gaussian
+    coefficients (0 for point sources) shared by both model kernels' wrappers."""
+    nsrc = flux.size
+    amp = np.broadcast_to(flux[:, None], (nsrc, nchan))
+    if attenuation is not None:
+        att = np.asarray(attenuation, dtype=np.float64)
+        if att.shape != (nsrc, nchan):
+            raise ValueError(f"attenuation must have shape (nsrc, nchan) = {(nsrc, nchan)}")
+        amp = amp * att
+        _count("attenuation")
+    gcoef = np.zeros(nsrc)
+    if fwhm is not None:
+        th = np.broadcast_to(np.asarray(fwhm, dtype=np.float64), (nsrc,))
+        if np.any(th < 0) or not np.all(np.isfinite(th)):
+            raise ValueError("fwhm must be finite and >= 0")
+        gcoef = gaussian_coefficient(th)
+    return np.ascontiguousarray(amp, dtype=np.float64), gcoef
+
+
+def _constant_sources(l: np.ndarray, m: np.ndarray, nm1: np.ndarray | None, gcoef: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, bool, bool]:
+    """Split the sources: point sources exactly at the phase center have constant
+    visibilities (no phasors). Returns (constant mask, the rest, whether the rest need the
+    w-term, whether any of the rest is Gaussian)."""
+    at_center = (l == 0.0) & (m == 0.0)
+    if nm1 is not None:
+        at_center &= nm1 == 0.0
+    const = at_center & (gcoef == 0.0)
+    if const.any():
+        _count("constant")
+    rest = ~const
+    has_w = nm1 is not None and bool(np.any(nm1[rest] != 0.0))
+    has_g = bool(np.any(gcoef[rest] > 0.0))
+    return const, rest, has_w, has_g
+
+
 def model_visibilities_antenna(antenna_uvw: Any, antenna1: Any, antenna2: Any, frequency: Any,
                                l: Any, m: Any, n_minus_1: Any, flux: Any,
                                attenuation: Any = None, fwhm: Any = None,
@@ -315,34 +353,14 @@ def model_visibilities_antenna(antenna_uvw: Any, antenna1: Any, antenna2: Any, f
     flux = np.atleast_1d(np.asarray(flux, dtype=np.float64))
     nsrc, nchan, nt = l.size, freq.size, ant.shape[0]
     nm1 = None if n_minus_1 is None else np.atleast_1d(np.asarray(n_minus_1, np.float64))
-    amp = np.broadcast_to(flux[:, None], (nsrc, nchan))
-    if attenuation is not None:
-        att = np.asarray(attenuation, dtype=np.float64)
-        if att.shape != (nsrc, nchan):
-            raise ValueError(f"attenuation must have shape (nsrc, nchan) = {(nsrc, nchan)}")
-        amp = amp * att
-        _count("attenuation")
-    amp = np.ascontiguousarray(amp, dtype=np.float64)
-    gcoef = np.zeros(nsrc)
-    if fwhm is not None:
-        th = np.broadcast_to(np.asarray(fwhm, dtype=np.float64), (nsrc,))
-        if np.any(th < 0) or not np.all(np.isfinite(th)):
-            raise ValueError("fwhm must be finite and >= 0")
-        gcoef = gaussian_coefficient(th)
+    amp, gcoef = _source_terms(flux, attenuation, fwhm, nchan)
     out = np.zeros((nt, a1.size, nchan), dtype=np.complex128)
     if nsrc == 0 or nt == 0 or a1.size == 0:
         return out.astype(out_dtype, copy=False)
-    at_center = (l == 0.0) & (m == 0.0)
-    if nm1 is not None:
-        at_center &= nm1 == 0.0
-    const = at_center & (gcoef == 0.0)
+    const, rest, has_w, has_g = _constant_sources(l, m, nm1, gcoef)
     if const.any():
         out += amp[const].sum(axis=0)[None, None, :]
-        _count("constant")
-    rest = ~const
     if rest.any():
-        has_w = nm1 is not None and bool(np.any(nm1[rest] != 0.0))
-        has_g = bool(np.any(gcoef[rest] > 0.0))
         order = np.argsort(freq, kind="stable")
         fs = np.ascontiguousarray(freq[order])
         tmp = np.zeros((nt, a1.size, nchan), dtype=np.complex128)
@@ -436,37 +454,16 @@ def model_visibilities(uvw: Any, frequency: Any, l: Any, m: Any, n_minus_1: Any,
     if nm1 is not None and nm1.size != nsrc:
         raise ValueError("n_minus_1 must have the same length as l")
 
-    amp = np.broadcast_to(flux[:, None], (nsrc, nchan))
-    if attenuation is not None:
-        att = np.asarray(attenuation, dtype=np.float64)
-        if att.shape != (nsrc, nchan):
-            raise ValueError(f"attenuation must have shape (nsrc, nchan) = {(nsrc, nchan)}")
-        amp = amp * att
-        _count("attenuation")
-    amp = np.ascontiguousarray(amp, dtype=np.float64)
-    gcoef = np.zeros(nsrc)
-    if fwhm is not None:
-        th = np.broadcast_to(np.asarray(fwhm, dtype=np.float64), (nsrc,))
-        if np.any(th < 0) or not np.all(np.isfinite(th)):
-            raise ValueError("fwhm must be finite and >= 0")
-        gcoef = gaussian_coefficient(th)
+    amp, gcoef = _source_terms(flux, attenuation, fwhm, nchan)
 
     out = np.zeros((nrow, nchan), dtype=np.complex128)
     if nsrc == 0 or nrow == 0 or nchan == 0:
         return out.astype(out_dtype, copy=False)
 
-    # point sources exactly at the phase center: constant visibilities, no phasors
-    at_center = (l == 0.0) & (m == 0.0)
-    if nm1 is not None:
-        at_center &= nm1 == 0.0
-    const = at_center & (gcoef == 0.0)
+    const, rest, has_w, has_g = _constant_sources(l, m, nm1, gcoef)
     if const.any():
         out += amp[const].sum(axis=0)[None, :]
-        _count("constant")
-    rest = ~const
     if rest.any():
-        has_w = nm1 is not None and bool(np.any(nm1[rest] != 0.0))
-        has_g = bool(np.any(gcoef[rest] > 0.0))
         # ascending channel order for the recurrences; undone on output
         order = np.argsort(freq, kind="stable")
         fs = np.ascontiguousarray(freq[order])

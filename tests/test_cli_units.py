@@ -59,7 +59,9 @@ def _parse(command: str, option: str, value: str) -> argparse.Namespace:
 
 
 def _dest(option: str) -> str:
-    return option.lstrip("-").replace("-", "_")
+    # imstack's flags store under the library's parameter names (errors then name the flag)
+    renamed = {"--mask-radius": "beam_mask_arcsec", "--filter": "filter_lowfreq"}
+    return renamed.get(option, option.lstrip("-").replace("-", "_"))
 
 
 def _subparsers() -> dict[str, argparse.ArgumentParser]:
@@ -154,8 +156,8 @@ def test_uv_distance_options(command, text, expected):
 
 
 def test_filter_cells_or_distance():
-    assert _parse("imstack", "--filter", "3").filter == 3
-    assert _parse("imstack", "--filter", "20klambda").filter == "20klambda"
+    assert _parse("imstack", "--filter", "3").filter_lowfreq == 3
+    assert _parse("imstack", "--filter", "20klambda").filter_lowfreq == "20klambda"
 
 
 # ------------------------------------------------------------------------- refusals
@@ -237,3 +239,14 @@ def test_image_cell_with_units_end_to_end(tmp_path, capsys):
         cells[name] = json.loads(capsys.readouterr().out)["cell_arcsec"]
     for value in cells.values():
         assert value == pytest.approx(2.0, rel=1e-12)
+
+
+def test_imstack_option_errors_name_the_flags(tmp_path, capsys):
+    """A bad --filter (checked by the library) is reported with its flag, not the API name."""
+    from xstack.cli import main
+
+    rc = main(["imstack", str(tmp_path / "none.fits"), str(tmp_path / "none.csv"),
+               str(tmp_path / "out.fits"), "--filter", "2"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "--filter" in err, err
+    assert "filter_lowfreq" not in err

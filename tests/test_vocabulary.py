@@ -162,3 +162,20 @@ def test_standard_beam_without_a_dish_uses_the_telescope():
 def test_every_public_name_resolves():
     missing = [name for name in xstack.__all__ if getattr(xstack, name, None) is None]
     assert missing == []
+
+
+def test_no_subpackage_shares_a_public_function_name():
+    """``xstack.uvstack`` is the sub-package, plainly a module, never swapped for a callable;
+    the functions are ``xstack.stack_uv`` / ``xstack.stack_images``."""
+    import importlib
+    import types
+
+    import xstack
+
+    for sub in ("io", "sim", "uvstack", "imaging", "imstack", "fit", "noise", "cli"):
+        module = importlib.import_module(f"xstack.{sub}")
+        assert type(module) is types.ModuleType, sub
+        assert sub not in xstack.__all__, sub
+        assert getattr(xstack, sub) is module
+    assert callable(xstack.stack_uv) and xstack.stack_uv.__module__ == "xstack.uvstack.stack"
+    assert xstack.stack_images.__module__ == "xstack.imstack.stack"

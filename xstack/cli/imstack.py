@@ -45,9 +45,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--pbcor", action="store_true",
                    help="same as --image-corrected no (divide each stamp by the primary beam)")
     p.add_argument("--mask-radius", type=_types.angle_arcsec, default=None, metavar="ANGLE",
+                   dest="beam_mask_arcsec",
                    help=f"radius of the central mask for sigma_k ({_types.ANGLE_HELP}; "
                         "default: BMAJ)")
     p.add_argument("--filter", type=_types.filter_cells_or_distance, default=None,
+                   dest="filter_lowfreq",
                    metavar="N|DIST",
                    help="low-spatial-frequency FFT filter of the stack (paper §5.3): an odd N "
                         "zeroes the central N x N Fourier cells; a uv distance (4500m, "
@@ -92,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
                           primary_beam=_one_or_list(args.primary_beam), pbcor=args.pbcor,
                           psf=_one_or_list(args.psf),
                           image_corrected=_corrected(args.image_corrected),
-                          beam_mask_arcsec=args.mask_radius, filter_lowfreq=args.filter,
+                          beam_mask_arcsec=args.beam_mask_arcsec,
+                          filter_lowfreq=args.filter_lowfreq,
                           skip_outside=args.skip_outside, out=out, cube_format=args.cube_format,
                           plot=not args.no_png, overwrite=args.overwrite,
                           progress=not args.no_progress and not args.json)

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["FitResult", "fit_image", "fit_uv", "plot_image_fit", "plot_uv_fit"]
+__all__ = ["FitResult", "ImageFitOptions", "UvFitOptions", "fit_image", "fit_uv", "plot_image_fit",
+           "plot_uv_fit"]
 
 
 def __getattr__(name: str) -> Any:
@@ -16,6 +17,12 @@ def __getattr__(name: str) -> Any:
     if name == "fit_image":
         from xstack.fit.imfit import fit_image
         return fit_image
+    if name == "UvFitOptions":
+        from xstack.fit.uvfit import UvFitOptions
+        return UvFitOptions
+    if name == "ImageFitOptions":
+        from xstack.fit.imfit import ImageFitOptions
+        return ImageFitOptions
     if name == "FitResult":
         from xstack.fit.result import FitResult
         return FitResult

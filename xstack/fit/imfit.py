@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ import numpy as np
 
 from xstack._vocabulary import FIT_MODELS, NOISE_CORRELATIONS
 from xstack.errors import OptionError, XstackError
+from xstack.fit import _options as _opt
 from xstack.fit.models import GAUSS_K, theta_and_error, theta_upper_limit
 from xstack.fit.result import FitResult
 
@@ -139,6 +141,130 @@ class PsfConvolver:
         return out[np.ix_(self.oy, self.ox)]
 
 
+@dataclass(frozen=True, kw_only=True)
+class ImageFitOptions:
+    """Every option of :func:`fit_image`, validated when built (before any data is read).
+
+    The fields are the keyword arguments of :func:`fit_image` (see there for their meaning);
+    the stamp and the PSF are inputs, not options. ``pixel_arcsec`` is stored as the pair
+    (|dx|, |dy|) in arcsec and ``center`` as a pair of ints; each bad value raises an
+    :class:`~xstack.errors.OptionError` naming the parameter.
+    """
+
+    pixel_arcsec: float | tuple[float, float] | None = None
+    center: tuple[int, int] | None = None
+    model: str = "gaussian"
+    fit_radius_arcsec: float | None = None
+    background: bool = True
+    noise_correlation: str = "psf"
+    sigma_jy: float | None = None
+    normalize_psf: bool | None = None
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__  # frozen: normalised values are set once, here
+        set_(self, "model", _opt.choice("model", self.model, FIT_MODELS))
+        set_(self, "noise_correlation",
+             _opt.choice("noise_correlation", self.noise_correlation, NOISE_CORRELATIONS))
+        pix = self.pixel_arcsec
+        if pix is not None:
+            pair = (pix, pix) if np.isscalar(pix) else tuple(pix)
+            if len(pair) != 2:
+                raise OptionError(f"pixel_arcsec must be one value or a pair (|dx|, |dy|), "
+                                  f"got {pix!r}", option="pixel_arcsec")
+            set_(self, "pixel_arcsec", tuple(_opt.positive("pixel_arcsec", p, optional=False)
+                                             for p in pair))
+        if self.center is not None:
+            c = tuple(self.center) if not np.isscalar(self.center) else (self.center,)
+            if len(c) != 2:
+                raise OptionError(f"center must be a (y, x) pixel pair, got {self.center!r}",
+                                  option="center")
+            set_(self, "center", tuple(_opt.integer("center", v) for v in c))
+        set_(self, "fit_radius_arcsec", _opt.positive("fit_radius_arcsec", self.fit_radius_arcsec))
+        set_(self, "background", _opt.flag("background", self.background))
+        set_(self, "sigma_jy", _opt.positive("sigma_jy", self.sigma_jy))
+        set_(self, "normalize_psf", _opt.flag("normalize_psf", self.normalize_psf, optional=True))
+
+    @property
+    def n_parameters(self) -> int:
+        """Number of fitted parameters: S, theta^2 (gaussian) and c (background)."""
+        return (2 if self.model == "gaussian" else 1) + int(self.background)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as a JSON-ready dict (tuples as lists)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in out.items()}
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The normalised inputs of an image fit: stamp, PSF and their geometry."""
+
+    img: np.ndarray              # the stamp, Jy/beam
+    psf: np.ndarray              # the dirty beam on the stamp's pixel grid
+    pix: tuple[float, float]     # (|dx|, |dy|), arcsec
+    center: tuple[int, int]      # 0-based (y, x) of the stacking position
+    normalize: bool              # divide the PSF by its peak
+    pb_convention: str           # "corrected", "not corrected" or "not stated"
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What the fit works on: the pixels used, the PSF convolver, scales and start values."""
+
+    conv: PsfConvolver
+    use: np.ndarray              # pixels entering the fit
+    data: np.ndarray             # img[use]
+    amp_scale: float             # flux scale (Jy) making S and c of order 1
+    s2: float                    # size scale (arcsec^2): theta^2 = alpha s2
+    model: str
+    background: bool
+    psf_normalized: bool         # the PSF was divided by its peak
+    p0: np.ndarray               # initial parameters (scaled)
+    lower: list[float]           # lower bounds (scaled)
+
+    @property
+    def npix(self) -> int:
+        return int(self.data.size)
+
+    def unpack(self, p: np.ndarray) -> tuple[float, float, float]:
+        """(S Jy, theta^2 arcsec^2, c Jy/beam) from the scaled parameters."""
+        S = p[0] * self.amp_scale
+        a = p[1] * self.s2 if self.model == "gaussian" else 0.0
+        c = p[-1] * self.amp_scale if self.background else 0.0
+        return S, a, c
+
+    def model_and_jac(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model on the used pixels and its Jacobian in the scaled parameters."""
+        S, a, c = self.unpack(p)
+        base, dbase = self.conv.model(a)
+        cols = [base[self.use] * self.amp_scale]
+        if self.model == "gaussian":
+            cols.append(S * dbase[self.use] * self.s2)
+        if self.background:
+            cols.append(np.full(self.npix, self.amp_scale))
+        return S * base[self.use] + c, np.column_stack(cols)
+
+    def resid(self, p: np.ndarray) -> np.ndarray:
+        return self.model_and_jac(p)[0] - self.data
+
+    def jac(self, p: np.ndarray) -> np.ndarray:
+        return self.model_and_jac(p)[1]
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """The solved fit: scaled parameters, residuals and the covariance pieces."""
+
+    p: np.ndarray
+    fun: np.ndarray              # residuals on the used pixels
+    JTJ_inv: np.ndarray
+    JRJ: np.ndarray
+    cond: float
+    dof_eff: float               # N - tr(H R)
+    rss: float
+    sigma2: float
+
+
 def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float, float] | None = None,
               center: tuple[int, int] | None = None, model: str = "gaussian",
               fit_radius_arcsec: float | None = None, background: bool = True,
@@ -162,7 +288,7 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     model
         ``"gaussian"`` (flux, FWHM) or ``"point"`` (flux only: S PSF + c).
     fit_radius_arcsec
-        Fit only pixels within this distance of the center (default: the whole stamp).
+        Fit only pixels within this distance of the center, arcsec (default: the whole stamp).
     background
         Fit the constant c (the paper's model); False fixes c = 0.
     noise_correlation
@@ -183,21 +309,38 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
         ``primary_beam`` (the stamp's convention: ``"corrected"`` for an ``xstack imstack``
         stamp, whose ``STPBCOR = T`` says its flux is primary-beam corrected; ``"not stated"``
         for an array or a FITS stamp without it, which is fitted as is with a warning).
-    """
-    from scipy.optimize import least_squares
 
-    if model not in FIT_MODELS:
-        raise OptionError(f"unknown model {model!r} (use point or gaussian)")
-    if noise_correlation not in NOISE_CORRELATIONS:
-        raise OptionError(f"unknown noise_correlation {noise_correlation!r} (psf, residual, none)")
+    Raises
+    ------
+    OptionError
+        A bad option (before the stamp is read).
+    XstackError
+        An unreadable stamp or PSF, too few pixels, or an ill-conditioned fit.
+    """
+    options = ImageFitOptions(pixel_arcsec=pixel_arcsec, center=center, model=model,
+                              fit_radius_arcsec=fit_radius_arcsec, background=background,
+                              noise_correlation=noise_correlation, sigma_jy=sigma_jy,
+                              normalize_psf=normalize_psf)
+    inputs = _load(stamp, psf, options)
+    plan = _plan(inputs, options)
+    measured = _compute(plan, options)
+    return _assemble(inputs, plan, measured, options)
+
+
+def _load(stamp: Any, psf: Any, options: ImageFitOptions) -> _Inputs:
+    """Read the stamp and the PSF (FITS paths or arrays) and settle pixel size, center, PSF
+    normalisation and primary-beam convention; warns when a FITS stamp does not state the
+    latter."""
     smeared = False
     pb_convention = "not stated"
+    center = options.center
     if isinstance(stamp, (str, os.PathLike)):
         info = read_stamp_fits(stamp)
         if info["pbcor"] is None:
+            # stacklevel 3: the warning points at the caller of fit_image
             warnings.warn(f"{stamp}: the stamp does not say whether its flux is primary-beam "
                           "corrected (no STPBCOR): fitted as is; stack with xstack imstack, "
-                          "which measures corrected fluxes and records it", stacklevel=2)
+                          "which measures corrected fluxes and records it", stacklevel=3)
         else:
             pb_convention = "corrected" if info["pbcor"] else "not corrected"
         img = info["stamp"]
@@ -211,12 +354,12 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
                                   option="psf")
     else:
         img = np.asarray(stamp, dtype=np.float64)
-        if pixel_arcsec is None:
-            raise XstackError("pixel_arcsec is needed when the stamp is an array")
-        pix = ((float(pixel_arcsec), float(pixel_arcsec)) if np.isscalar(pixel_arcsec)
-               else (float(pixel_arcsec[0]), float(pixel_arcsec[1])))
+        if options.pixel_arcsec is None:
+            raise OptionError("pixel_arcsec is needed when the stamp is an array",
+                              option="pixel_arcsec")
+        pix = options.pixel_arcsec
     if psf is None:
-        raise XstackError("a PSF (dirty beam) is needed for the image fit")
+        raise XstackError("a PSF (dirty beam) is needed for the image fit", option="psf")
     img = np.squeeze(img)
     if img.ndim != 2:
         raise XstackError(f"the stamp must be a 2-D image, got shape {img.shape}")
@@ -224,63 +367,52 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     center = (ny // 2, nx // 2) if center is None else (int(center[0]), int(center[1]))
     psf_arr, smeared_file = read_psf(psf, with_flag=True)
     smeared = smeared or smeared_file
-    normalize = (not smeared) if normalize_psf is None else bool(normalize_psf)
-    conv = PsfConvolver(psf_arr, img.shape, center, pix, normalize=normalize)
+    normalize = (not smeared) if options.normalize_psf is None else options.normalize_psf
+    return _Inputs(img=img, psf=psf_arr, pix=pix, center=center, normalize=normalize,
+                   pb_convention=pb_convention)
+
+
+def _plan(inputs: _Inputs, options: ImageFitOptions) -> _Plan:
+    """The pixels to fit, the PSF convolver, the parameter scales and the start values (a
+    linear fit of the point model S PSF + c, size 0)."""
+    img, pix, center = inputs.img, inputs.pix, inputs.center
+    ny, nx = img.shape
+    conv = PsfConvolver(inputs.psf, img.shape, center, pix, normalize=inputs.normalize)
     yy, xx = np.mgrid[0:ny, 0:nx]
     r = np.hypot((yy - center[0]) * pix[1], (xx - center[1]) * pix[0])
     use = np.isfinite(img)
-    if fit_radius_arcsec is not None:
-        use &= r <= float(fit_radius_arcsec)
+    if options.fit_radius_arcsec is not None:
+        use &= r <= options.fit_radius_arcsec
     npix = int(use.sum())
-    nparam = (2 if model == "gaussian" else 1) + int(background)
-    if npix <= nparam + 1:
+    if npix <= options.n_parameters + 1:
         raise XstackError(f"only {npix} usable pixels to fit (fit radius too small?)")
     data = img[use]
     psf0, _ = conv.model(0.0)
     amp_scale = max(float(np.max(np.abs(data))), 1e-30)
-
     # size parameter: alpha = theta^2 / s2 with s2 = beam area in arcsec^2 (order 1)
     s2 = float(max(pix[0] * pix[1] * max(np.sum(psf0 > 0.5 * psf0.max()), 1), pix[0] * pix[1]))
-
-    def unpack(p: np.ndarray) -> tuple[float, float, float]:
-        S = p[0] * amp_scale
-        a = p[1] * s2 if model == "gaussian" else 0.0
-        c = p[-1] * amp_scale if background else 0.0
-        return S, a, c
-
-    def model_and_jac(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        S, a, c = unpack(p)
-        base, dbase = conv.model(a)
-        cols = [base[use] * amp_scale]
-        if model == "gaussian":
-            cols.append(S * dbase[use] * s2)
-        if background:
-            cols.append(np.full(npix, amp_scale))
-        return S * base[use] + c, np.column_stack(cols)
-
-    def resid(p: np.ndarray) -> np.ndarray:
-        return model_and_jac(p)[0] - data
-
-    def jac(p: np.ndarray) -> np.ndarray:
-        return model_and_jac(p)[1]
-
-    # initial values: linear fit of S PSF + c (the point model), size 0
+    gaussian, background = options.model == "gaussian", options.background
     A0 = np.column_stack([psf0[use]] + ([np.ones(npix)] if background else []))
     lin, *_ = np.linalg.lstsq(A0, data, rcond=None)
-    p0 = [lin[0] / amp_scale]
-    if model == "gaussian":
-        p0.append(0.1)
-    if background:
-        p0.append(lin[-1] / amp_scale)
+    p0 = [lin[0] / amp_scale] + ([0.1] if gaussian else []) + \
+         ([lin[-1] / amp_scale] if background else [])
     # theta^2 may go below 0 (noise) but not so far that exp(+...) explodes at Nyquist
     a_min = -2.0 / (GAUSS_K * float(conv.f2.max()))
-    lower = [-np.inf] + ([a_min / s2] if model == "gaussian" else []) + \
-            ([-np.inf] if background else [])
-    sol = least_squares(resid, np.array(p0), jac=jac, method="trf", x_scale="jac",
-                        bounds=(lower, [np.inf] * len(p0)), xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                        max_nfev=500)
-    p = sol.x
-    J = jac(p)
+    lower = [-np.inf] + ([a_min / s2] if gaussian else []) + ([-np.inf] if background else [])
+    return _Plan(conv=conv, use=use, data=data, amp_scale=amp_scale, s2=s2,
+                 model=options.model, background=background, psf_normalized=inputs.normalize,
+                 p0=np.array(p0), lower=lower)
+
+
+def _compute(plan: _Plan, options: ImageFitOptions) -> _Measured:
+    """Solve the least-squares problem, check its conditioning and compute the pieces of the
+    sandwich covariance and the noise level (see the module notes)."""
+    from scipy.optimize import least_squares
+
+    sol = least_squares(plan.resid, plan.p0, jac=plan.jac, method="trf", x_scale="jac",
+                        bounds=(plan.lower, [np.inf] * len(plan.p0)), xtol=1e-12, ftol=1e-12,
+                        gtol=1e-12, max_nfev=500)
+    J = plan.jac(sol.x)
     JTJ = J.T @ J
     try:
         JTJ_inv = np.linalg.inv(JTJ)
@@ -291,59 +423,77 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     if not np.isfinite(cond) or cond > 1e12:
         raise XstackError(f"image fit ill-conditioned (condition number {cond:.3g}): the stamp does "
                           "not constrain the parameters (stamp too small for the beam?)")
-    res_full = np.zeros(img.shape)
-    res_full[use] = sol.fun
-    # noise correlation R (peak 1)
+    JRJ = J.T @ _correlated_jacobian(plan, J, sol.fun, options.noise_correlation)
+    trHR = float(np.trace(JTJ_inv @ JRJ))
+    rss = float(np.sum(sol.fun**2))
+    dof_eff = plan.npix - trHR
+    if options.sigma_jy is not None:
+        sigma2 = options.sigma_jy ** 2
+    else:
+        if dof_eff <= 0:
+            raise XstackError("too few independent pixels to estimate the noise; give sigma_jy",
+                              option="sigma_jy")
+        sigma2 = rss / dof_eff
+    return _Measured(p=sol.x, fun=sol.fun, JTJ_inv=JTJ_inv, JRJ=JRJ, cond=float(cond),
+                     dof_eff=dof_eff, rss=rss, sigma2=sigma2)
+
+
+def _correlated_jacobian(plan: _Plan, J: np.ndarray, fun: np.ndarray,
+                         noise_correlation: str) -> np.ndarray:
+    """R J: each Jacobian column convolved with the noise correlation R (peak 1): the PSF,
+    the autocorrelation of the residuals ``fun``, or the identity."""
+    conv, use = plan.conv, plan.use
+    if noise_correlation == "none":
+        return J.copy()
     rho_ft = None
     if noise_correlation == "residual":
+        res_full = np.zeros(conv.shape)
+        res_full[use] = fun
         grid = np.zeros(conv.N)
         grid[np.ix_(conv.oy, conv.ox)] = res_full
         ft = np.fft.rfft2(grid)
         acf = np.fft.irfft2(np.abs(ft) ** 2, s=conv.N)
         rho_ft = np.fft.rfft2(acf / acf[0, 0])
-    if noise_correlation == "none":
-        RJ = J.copy()
-    else:
-        RJ = np.empty_like(J)
-        # the noise correlation is the dirty beam with peak 1 (whatever the PSF's scale)
-        rho = conv.psf_ft / conv.peak if (rho_ft is None and not normalize) else rho_ft
-        for i in range(J.shape[1]):
-            col = np.zeros(img.shape)
-            col[use] = J[:, i]
-            RJ[:, i] = conv.correlate(col, rho)[use]
-    JRJ = J.T @ RJ
-    trHR = float(np.trace(JTJ_inv @ JRJ))
-    rss = float(np.sum(sol.fun**2))
-    dof_eff = npix - trHR
-    if sigma_jy is not None:
-        sigma2 = float(sigma_jy) ** 2
-    else:
-        if dof_eff <= 0:
-            raise XstackError("too few independent pixels to estimate the noise; give sigma_jy")
-        sigma2 = rss / dof_eff
-    cov_p = sigma2 * JTJ_inv @ JRJ @ JTJ_inv
+    RJ = np.empty_like(J)
+    # the noise correlation is the dirty beam with peak 1 (whatever the PSF's scale)
+    rho = conv.psf_ft / conv.peak if (rho_ft is None and not plan.psf_normalized) else rho_ft
+    for i in range(J.shape[1]):
+        col = np.zeros(conv.shape)
+        col[use] = J[:, i]
+        RJ[:, i] = conv.correlate(col, rho)[use]
+    return RJ
+
+
+def _assemble(inputs: _Inputs, plan: _Plan, measured: _Measured,
+              options: ImageFitOptions) -> FitResult:
+    """The :class:`FitResult`: physical parameters and covariance, goodness of fit, the
+    extras (options as used, noise, PSF) and, for the Gaussian model, the size."""
+    gaussian, background = options.model == "gaussian", options.background
+    sigma2, rss, dof_eff = measured.sigma2, measured.rss, measured.dof_eff
+    cov_p = sigma2 * measured.JTJ_inv @ measured.JRJ @ measured.JTJ_inv
     # physical parameters: (S Jy, theta^2 arcsec^2, c Jy/beam)
-    scales = [amp_scale] + ([s2] if model == "gaussian" else []) + ([amp_scale] if background else [])
+    scales = [plan.amp_scale] + ([plan.s2] if gaussian else []) + \
+             ([plan.amp_scale] if background else [])
     D = np.diag(scales)
     cov = D @ cov_p @ D
-    S, a_hat, c = unpack(p)
-    names = ["flux_jy"] + (["fwhm2_arcsec2"] if model == "gaussian" else []) + \
+    S, a_hat, c = plan.unpack(measured.p)
+    names = ["flux_jy"] + (["fwhm2_arcsec2"] if gaussian else []) + \
             (["background_jy_per_beam"] if background else [])
-    values = [S] + ([a_hat] if model == "gaussian" else []) + ([c] if background else [])
-    extra = {"noise_correlation": noise_correlation, "sigma_jy_per_beam": float(np.sqrt(sigma2)),
-             "primary_beam": pb_convention,
-             "psf_peak": conv.peak, "psf_normalized": normalize,
-             "effective_dof": float(dof_eff), "condition_number": float(cond),
-             "pixel_arcsec": list(pix), "center_pixel": list(center)}
+    values = [S] + ([a_hat] if gaussian else []) + ([c] if background else [])
+    extra = {"noise_correlation": options.noise_correlation,
+             "sigma_jy_per_beam": float(np.sqrt(sigma2)), "primary_beam": inputs.pb_convention,
+             "psf_peak": plan.conv.peak, "psf_normalized": inputs.normalize,
+             "effective_dof": float(dof_eff), "condition_number": measured.cond,
+             "pixel_arcsec": list(inputs.pix), "center_pixel": list(inputs.center)}
     if background:
         extra["background_jy_per_beam"] = float(c)
         extra["background_err_jy_per_beam"] = float(np.sqrt(cov[-1, -1]))
-    result = FitResult(model=model, domain="image", flux_jy=float(S),
+    result = FitResult(model=options.model, domain="image", flux_jy=float(S),
                        flux_err_jy=float(np.sqrt(cov[0, 0])), parameters=tuple(names),
                        values=np.array(values), covariance=cov, chi2=rss / sigma2,
                        dof=int(round(dof_eff)), chi2_reduced=rss / sigma2 / max(dof_eff, 1),
-                       error_scale=1.0, n_data=npix, extra=extra)
-    if model == "gaussian":
+                       error_scale=1.0, n_data=plan.npix, extra=extra)
+    if gaussian:
         if not S > 0:
             raise XstackError(f"gaussian fit ill-conditioned: fitted flux {S:.3g} Jy is not "
                               f"positive (error {np.sqrt(cov[0, 0]):.3g} Jy), so the size is "

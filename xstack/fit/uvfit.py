@@ -16,6 +16,7 @@ center), so the imaginary parts enter only chi^2. Initial values come from the l
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,7 @@ import numpy as np
 from xstack._vocabulary import FIT_MODELS
 from xstack.coords import SPEED_OF_LIGHT
 from xstack.errors import NoDataError, OptionError, XstackError
+from xstack.fit import _options as _opt
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.fit.models import GAUSS_K, linear_initial_guess, theta_and_error, theta_upper_limit
 from xstack.fit.result import FitResult
@@ -47,7 +49,14 @@ def collect_uv(stacked: Any, *, uvmin: Any = None, uvmax: Any = None
     chi2_im : sum of w (Im V)^2 over the same visibilities
     n_total : usable visibilities before the uv cut
     """
-    lo, hi = parse_uv_limit(uvmin), parse_uv_limit(uvmax)
+    return _collect(stacked, (parse_uv_limit(uvmin), parse_uv_limit(uvmax)), uvmin, uvmax)
+
+
+def _collect(stacked: Any, limits: tuple[Any, Any], uvmin: Any, uvmax: Any
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int]:
+    """:func:`collect_uv` with the uv limits already parsed (``uvmin``/``uvmax`` as given,
+    for the messages)."""
+    lo, hi = limits
     qs, res, ws = [], [], []
     chi2_im, n_total = 0.0, 0
     for name, ds in as_partitions(stacked):
@@ -203,6 +212,50 @@ def fit_uv_arrays(q2: np.ndarray, re: np.ndarray, w: np.ndarray, *, model: str =
                "condition_number": float(cond), "at_size_bound": bool(p[1] <= alpha_min * 0.999)})
 
 
+@dataclass(frozen=True, kw_only=True)
+class UvFitOptions:
+    """Every option of :func:`fit_uv`, validated when built (before any data is read).
+
+    The fields are the keyword arguments of :func:`fit_uv` (see there); ``uv_limits`` (not
+    an argument) holds ``uvmin``/``uvmax`` parsed to ``(value, "m" | "lambda")`` or None.
+    Each bad value raises an :class:`~xstack.errors.OptionError` naming the parameter.
+    """
+
+    model: str = "point"
+    uvmin: Any = None
+    uvmax: Any = None
+    binned: bool = False
+    nbins: int = 30
+    rescale_errors: bool = True
+    uv_limits: tuple[Any, Any] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__  # frozen: normalised values are set once, here
+        set_(self, "model", _opt.choice("model", self.model, FIT_MODELS))
+        set_(self, "binned", _opt.flag("binned", self.binned))
+        set_(self, "rescale_errors", _opt.flag("rescale_errors", self.rescale_errors))
+        set_(self, "nbins", _opt.integer("nbins", self.nbins))
+        if self.binned and self.nbins < 3:
+            raise OptionError(f"nbins must be at least 3 for a binned fit, got {self.nbins}",
+                              option="nbins")
+        limits = []
+        for name in ("uvmin", "uvmax"):
+            try:
+                limits.append(parse_uv_limit(getattr(self, name)))
+            except OptionError:
+                raise
+            except XstackError as exc:
+                raise OptionError(f"{name}: {exc}", option=name) from None
+        set_(self, "uv_limits", tuple(limits))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as given, JSON-ready (uv limits as strings, like the result's)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self) if f.init}
+        for name in ("uvmin", "uvmax"):
+            out[name] = None if out[name] is None else str(out[name])
+        return out
+
+
 def fit_uv(stacked: Any, *, model: str = "point", uvmin: Any = None, uvmax: Any = None,
            binned: bool = False, nbins: int = 30, rescale_errors: bool = True) -> FitResult:
     """Fit a point or circular Gaussian model to stacked visibilities.
@@ -220,6 +273,8 @@ def fit_uv(stacked: Any, *, model: str = "point", uvmin: Any = None, uvmax: Any 
         ``23.8klambda``).
     binned
         Fit the binned uv-profile (``nbins`` bins linear in q) instead of the visibilities.
+    nbins
+        Number of bins of the binned fit (>= 3).
     rescale_errors
         Scale errors by sqrt(reduced chi^2) of the real and imaginary residuals.
 
@@ -231,38 +286,54 @@ def fit_uv(stacked: Any, *, model: str = "point", uvmin: Any = None, uvmax: Any 
 
     Raises
     ------
+    OptionError
+        A bad option (before the data are read).
+    NoDataError
+        No usable visibilities, or none left in the uv range.
     XstackError
-        Unknown model, no visibilities left in the uv range, or an ill-conditioned fit.
+        An ill-conditioned fit.
     """
-    if model not in FIT_MODELS:
-        raise OptionError(f"unknown model {model!r} (use point or gaussian)")
-    if binned and nbins < 3:
-        raise XstackError("binned fit needs at least 3 bins")
-    q2, re, w, chi2_im, n_total = collect_uv(stacked, uvmin=uvmin, uvmax=uvmax)
+    options = UvFitOptions(model=model, uvmin=uvmin, uvmax=uvmax, binned=binned, nbins=nbins,
+                           rescale_errors=rescale_errors)
+    q2, re, w, chi2_im, n_total = _collect(stacked, options.uv_limits, uvmin, uvmax)
+    res, extra = _compute(q2, re, w, chi2_im, options)
+    return _assemble(res, extra, q2, n_total, options)
+
+
+def _compute(q2: np.ndarray, re: np.ndarray, w: np.ndarray, chi2_im: float,
+             options: UvFitOptions) -> tuple[FitResult, dict[str, Any]]:
+    """The fit of the visibilities, of their binned uv-profile (``binned``), or of exact
+    sufficient statistics in fine q^2 bins (more than :data:`MAX_UNBINNED` visibilities);
+    returns the fit and the extras saying which."""
     n = q2.size
-    extra: dict[str, Any] = {}
-    if binned:
+    model, rescale = options.model, options.rescale_errors
+    if options.binned:
         q = np.sqrt(q2)
-        edges = np.linspace(q.min(), q.max() * (1 + 1e-12), nbins + 1) ** 2
+        edges = np.linspace(q.min(), q.max() * (1 + 1e-12), options.nbins + 1) ** 2
         xb, yb, wb, within = _binned_sums(q2, re, w, edges)
         res = fit_uv_arrays(xb, yb, wb, model=model, chi2_extra=chi2_im + within, n_vis=n,
-                            rescale_errors=rescale_errors)
-        extra["profile"] = {"q_klambda": (np.sqrt(xb) / 1e3).tolist(), "re_jy": yb.tolist(),
-                            "err_jy": (1 / np.sqrt(wb)).tolist()}
-    elif n > MAX_UNBINNED:
+                            rescale_errors=rescale)
+        return res, {"profile": {"q_klambda": (np.sqrt(xb) / 1e3).tolist(),
+                                 "re_jy": yb.tolist(), "err_jy": (1 / np.sqrt(wb)).tolist()}}
+    if n > MAX_UNBINNED:
         lq = np.log(q2 + 1e-300)
         edges = np.exp(np.linspace(lq.min(), lq.max() + 1e-9, _FINE_BINS + 1))
         xb, yb, wb, within = _binned_sums(q2, re, w, edges)
         res = fit_uv_arrays(xb, yb, wb, model=model, chi2_extra=chi2_im + within, n_vis=n,
-                            rescale_errors=rescale_errors)
-        extra["compressed_bins"] = int(xb.size)
-    else:
-        res = fit_uv_arrays(q2, re, w, model=model, chi2_extra=chi2_im,
-                            rescale_errors=rescale_errors)
+                            rescale_errors=rescale)
+        return res, {"compressed_bins": int(xb.size)}
+    return fit_uv_arrays(q2, re, w, model=model, chi2_extra=chi2_im,
+                         rescale_errors=rescale), {}
+
+
+def _assemble(res: FitResult, extra: dict[str, Any], q2: np.ndarray, n_total: int,
+              options: UvFitOptions) -> FitResult:
+    """The fit with its extras: how it was computed, the options as used (``binned``,
+    ``uvmin``, ``uvmax``) and the uv range of the data."""
     res.extra.update(extra)
-    res.extra.update({"binned": bool(binned), "n_vis_before_uv_cut": int(n_total),
-                      "uvmin": None if uvmin is None else str(uvmin),
-                      "uvmax": None if uvmax is None else str(uvmax),
+    opts = options.to_dict()
+    res.extra.update({"binned": opts["binned"], "n_vis_before_uv_cut": int(n_total),
+                      "uvmin": opts["uvmin"], "uvmax": opts["uvmax"],
                       "q_range_klambda": [float(np.sqrt(q2.min()) / 1e3),
                                           float(np.sqrt(q2.max()) / 1e3)]})
     return res

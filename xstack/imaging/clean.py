@@ -36,7 +36,7 @@ class CleanResult(Result):
     beam_pixels
         Restoring beam (major FWHM, minor FWHM in pixels, PA in degrees east of north).
     peak_residual
-        Largest |residual| inside the mask at the end, Jy/beam.
+        Largest absolute residual inside the mask at the end, Jy/beam.
     converged
         True if the threshold was reached (rather than ``niter`` or the cycle limit).
     n_major
@@ -183,7 +183,7 @@ def clean(dirty: np.ndarray, psf: np.ndarray, *, threshold: float, niter: int, g
         PSF, peak 1 at (ny_psf // 2, nx_psf // 2); any shape (the image's, or larger so that
         every component subtracts a whole PSF).
     threshold
-        Stop when the masked |residual| peak is at or below this (Jy/beam).
+        Stop when the masked peak of the absolute residual is at or below this (Jy/beam).
     niter
         Maximum number of components.
     gain

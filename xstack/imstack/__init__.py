@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["ImstackResult", "stack_images"]
+__all__ = ["ImstackOptions", "ImstackResult", "stack_images"]
 
 
 def __getattr__(name: str) -> Any:

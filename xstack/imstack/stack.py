@@ -1,8 +1,12 @@
 """Image-stacking (paper §3.2): stamps around known positions, stacked pixel by pixel.
 
-The public entry point is :func:`imstack`. Stamps live in an :class:`xarray.DataArray` cube
-with dims ``source``, ``y``, ``x`` (coordinates in arcsec offsets from the stacking
-position); the numerical work is in :mod:`xstack.imstack.kernels` (plain numpy).
+The public entry point is :func:`stack_images`, its options an :class:`ImstackOptions`
+(validated before any input is read). It runs in phases: ``_load`` (outputs free, positions,
+images read) -> ``_plan`` (pixel grid, beams, which image sees which position, the noise mask)
+-> ``_compute`` (stamps, weights, the stack) -> ``_assemble`` (the :class:`ImstackResult`)
+-> ``_save`` (the outputs). Stamps live in an :class:`xarray.DataArray` cube with dims
+``source``, ``y``, ``x`` (coordinates in arcsec offsets from the stacking position); the
+numerical work is in :mod:`xstack.imstack.kernels` (plain numpy).
 """
 
 from __future__ import annotations
@@ -10,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +27,7 @@ from xstack import __version__, _vocabulary
 from xstack._atomic import atomic_output, check_output
 from xstack._inputs import Positions
 from xstack._progress import progress_iter
-from xstack._result import Result
+from xstack._result import Result, json_ready
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
 from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.imstack import kernels
@@ -47,7 +51,7 @@ ImageSource = str | os.PathLike | fits.ImageHDU | fits.PrimaryHDU | ImageInfo
 
 @dataclass(kw_only=True)
 class ImstackResult(Result):
-    """Result of :func:`imstack`.
+    """Result of :func:`stack_images`.
 
     Attributes
     ----------
@@ -84,6 +88,9 @@ class ImstackResult(Result):
         weighted mean of each stamp's PSF, including for nearest-pixel alignment the
         smearing by each position's sub-pixel offset (its central value is then the expected
         pixelisation factor of the dirty beam).
+    options
+        The options used (:meth:`ImstackOptions.to_dict`), plus ``n_images`` and the
+        ``mask_radius_arcsec`` used.
     """
 
     cube: xr.DataArray
@@ -108,6 +115,7 @@ class ImstackResult(Result):
     skipped_rows: list[int] = field(default_factory=list)
     outputs: dict[str, str] = field(default_factory=dict)
     primary_beam: list[dict[str, Any]] = field(default_factory=list)
+    options: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly summary (what ``xstack imstack --json`` prints)."""
@@ -135,6 +143,7 @@ class ImstackResult(Result):
             "outputs": dict(self.outputs),
             "flux_convention": "primary-beam corrected",
             "primary_beam": [dict(p) for p in self.primary_beam],
+            "options": dict(self.options),
         }
 
     def table(self) -> Table:
@@ -152,6 +161,148 @@ class ImstackResult(Result):
             if name in t.colnames:
                 t[name].unit = unit
         return t
+
+
+# ---------------------------------------------------------------------------------------------
+# options
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, kw_only=True)
+class ImstackOptions:
+    """Every option of :func:`stack_images`, validated on construction.
+
+    The fields are the keyword parameters of :func:`stack_images`, with the same names,
+    defaults, units and meanings (see its Parameters); a bad value raises
+    :class:`~xstack.errors.OptionError` naming the parameter, before any input is read.
+    ``subpixel`` is normalized (``None``, ``"none"``, ``"nearest"`` -> ``False``) and
+    ``stamp_size`` made an ``int``.
+
+    Attributes
+    ----------
+    corrected
+        The primary-beam state to assume: ``image_corrected``, or ``False`` with ``pbcor``.
+    filter_cells
+        ``filter_lowfreq`` as a number of central Fourier cells (odd int), else None.
+    filter_uv
+        ``filter_lowfreq`` as a uv distance ``(value, unit)``, unit ``"m"`` or ``"lambda"``
+        (:func:`xstack.coords.parse_distance`), else None.
+    """
+
+    stamp_size: int = 64
+    method: str = "mean"
+    weighting: str = "sigma2"
+    subpixel: str | bool = False
+    primary_beam: Any = None
+    pbcor: bool = False
+    psf: Any = None
+    image_corrected: bool | None | Sequence[bool | None] = None
+    beam_mask_arcsec: float | None = None
+    filter_lowfreq: int | str | None = None
+    skip_outside: bool = False
+    out: str | os.PathLike | None = None
+    cube_format: str = "zarr"
+    plot: bool = True
+    overwrite: bool = False
+    progress: bool = False
+    # derived in __post_init__ (not constructor arguments)
+    filter_cells: int | None = field(init=False, default=None)
+    filter_uv: tuple[float, str] | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise OptionError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}",
+                              option="method")
+        if self.weighting not in WEIGHTINGS:
+            raise OptionError(f"weighting must be one of {', '.join(WEIGHTINGS)}, got "
+                              f"{self.weighting!r}", option="weighting")
+        subpixel = False if self.subpixel in (None, "none", "nearest") else self.subpixel
+        if subpixel not in SUBPIXEL:
+            raise OptionError(f"subpixel must be fourier or spline (or False), got {subpixel!r}",
+                              option="subpixel")
+        object.__setattr__(self, "subpixel", subpixel)
+        object.__setattr__(self, "stamp_size", _stamp_size(self.stamp_size))
+        if self.cube_format not in _vocabulary.CUBE_FORMATS:
+            raise OptionError(f"cube_format must be zarr or fits, got {self.cube_format!r}",
+                              option="cube_format")
+        if self.pbcor and (self.image_corrected is True or (
+                isinstance(self.image_corrected, (list, tuple))
+                and any(c is True for c in self.image_corrected))):
+            raise OptionError("pbcor=True (divide by the beam) contradicts image_corrected=True",
+                              option=("pbcor", "image_corrected"))
+        if self.beam_mask_arcsec is not None:
+            try:
+                radius = float(self.beam_mask_arcsec)
+            except (TypeError, ValueError):
+                radius = float("nan")
+            if not radius > 0:
+                raise OptionError(f"beam_mask_arcsec must be a positive radius in arcsec, got "
+                                  f"{self.beam_mask_arcsec!r}", option="beam_mask_arcsec")
+        self._parse_filter()
+
+    def _parse_filter(self) -> None:
+        """Set ``filter_cells`` or ``filter_uv`` from ``filter_lowfreq`` (validated)."""
+        spec = self.filter_lowfreq
+        if spec is None or spec is False:
+            return
+        if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+            n = int(spec)
+            if n < 1 or n % 2 == 0 or n >= self.stamp_size:
+                raise OptionError(f"filter_lowfreq={n}: give an odd number of central Fourier "
+                                  f"cells smaller than the stamp ({self.stamp_size})",
+                                  option="filter_lowfreq")
+            object.__setattr__(self, "filter_cells", n)
+            return
+        try:
+            object.__setattr__(self, "filter_uv", parse_distance(spec))
+        except XstackError as exc:
+            raise OptionError(f"filter_lowfreq: {exc}", option="filter_lowfreq") from None
+
+    @property
+    def corrected(self) -> bool | None | Sequence[bool | None]:
+        """``image_corrected`` as used: ``False`` (divide by A) when ``pbcor`` is set."""
+        return False if self.pbcor else self.image_corrected
+
+    def output_paths(self) -> dict[str, Path] | None:
+        """The output names (``fits``, ``cube``, ``png`` unless ``plot`` is off), or None
+        without ``out``. Names only: nothing on disk is looked at."""
+        if self.out is None:
+            return None
+        paths = output_paths(self.out, self.cube_format)
+        if not self.plot:
+            paths.pop("png")
+        return paths
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options as JSON values (what the result's ``options`` holds): objects such as
+        a primary-beam model or an array are described, not serialised."""
+        return {f.name: _describe(getattr(self, f.name)) for f in fields(self) if f.init}
+
+
+def _stamp_size(value: Any) -> int:
+    """``stamp_size`` as an int >= 5 (OptionError otherwise)."""
+    try:
+        ok = not isinstance(value, bool) and int(value) == value and value >= 5
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise OptionError(f"stamp_size must be an integer >= 5 pixels, got {value!r}",
+                          option="stamp_size")
+    return int(value)
+
+
+def _describe(value: Any) -> Any:
+    """A JSON value standing for an option's value (arrays and objects by their kind)."""
+    if value is None or isinstance(value, (bool, int, float, str, np.generic, os.PathLike)):
+        return json_ready(value)
+    if isinstance(value, (list, tuple)):
+        return [_describe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return f"array {'x'.join(str(n) for n in value.shape)}"
+    if is_dataclass(value) and not isinstance(value, type):
+        # e.g. a PrimaryBeam: its own fields say what it is
+        return {"type": type(value).__name__,
+                **{f.name: _describe(getattr(value, f.name)) for f in fields(value)}}
+    return type(value).__name__
 
 
 # ---------------------------------------------------------------------------------------------
@@ -182,22 +333,20 @@ def _check_grids(infos: list[ImageInfo]) -> np.ndarray:
     return ref
 
 
-def _filter_mask(filter_lowfreq: Any, size: int, pix_x_arcsec: float, pix_y_arcsec: float,
+def _filter_mask(options: ImstackOptions, pix_x_arcsec: float, pix_y_arcsec: float,
                  freq_hz: float | None) -> np.ndarray | None:
-    """The Fourier cells to zero for ``filter_lowfreq`` (None: no filter)."""
-    if filter_lowfreq is None or filter_lowfreq is False:
+    """The Fourier cells of a stamp to zero for ``filter_lowfreq`` (None: no filter)."""
+    size = options.stamp_size
+    if options.filter_cells is not None:
+        return kernels.lowfreq_mask((size, size), n_central=options.filter_cells)
+    if options.filter_uv is None:
         return None
-    if isinstance(filter_lowfreq, (int, np.integer)) and not isinstance(filter_lowfreq, bool):
-        n = int(filter_lowfreq)
-        if n < 1 or n % 2 == 0 or n >= size:
-            raise XstackError(f"filter_lowfreq={n}: give an odd number of central Fourier cells "
-                              f"smaller than the stamp ({size})")
-        return kernels.lowfreq_mask((size, size), n_central=n)
-    value, unit = parse_distance(filter_lowfreq)
+    value, unit = options.filter_uv
     if unit == "m":
         if freq_hz is None:
             raise XstackError("filter_lowfreq in metres needs the image frequency; give it in "
-                              "klambda or as a number of central Fourier cells")
+                              "klambda or as a number of central Fourier cells",
+                              option="filter_lowfreq")
         value = value * freq_hz / SPEED_OF_LIGHT
     # one Fourier cell of a stamp is 1 / (size * pixel) wavelengths (pixel in radians)
     cell = 1.0 / (size * np.radians(max(pix_x_arcsec, pix_y_arcsec) / 3600.0))
@@ -304,38 +453,93 @@ def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *,
         outside every image or on blanked pixels (unless ``skip_outside``), no finite stamp
         value at the stacking position, existing outputs.
     """
-    # ---- options (before any work) ----------------------------------------------------------
-    if method not in METHODS:
-        raise OptionError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    if weighting not in WEIGHTINGS:
-        raise OptionError(f"weighting must be one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
-    if subpixel in (None, "none", "nearest"):
-        subpixel = False
-    if subpixel not in SUBPIXEL:
-        raise OptionError(f"subpixel must be fourier or spline (or False), got {subpixel!r}")
-    if isinstance(stamp_size, bool) or int(stamp_size) != stamp_size or stamp_size < 5:
-        raise OptionError(f"stamp size must be an integer >= 5 pixels, got {stamp_size!r}")
-    stamp_size = int(stamp_size)
-    if cube_format not in _vocabulary.CUBE_FORMATS:
-        raise OptionError(f"cube format must be zarr or fits, got {cube_format!r}")
-    paths = None
-    if out is not None:
-        paths = output_paths(out, cube_format)
-        if not plot:
-            paths.pop("png")
+    options = ImstackOptions(stamp_size=stamp_size, method=method, weighting=weighting,
+                             subpixel=subpixel, primary_beam=primary_beam, pbcor=pbcor, psf=psf,
+                             image_corrected=image_corrected, beam_mask_arcsec=beam_mask_arcsec,
+                             filter_lowfreq=filter_lowfreq, skip_outside=skip_outside, out=out,
+                             cube_format=cube_format, plot=plot, overwrite=overwrite,
+                             progress=progress)
+    inputs = _load(images, positions, options)   # outputs free, positions, images read
+    plan = _plan(inputs, options)                # pixel grid, beams, who sees what, noise mask
+    measured = _compute(plan, options)           # stamps, weights, the stack (numpy kernels)
+    result = _assemble(plan, measured, options)  # xarray objects and the result
+    if inputs.paths is not None:
+        _save(result, plan, measured, options)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# phases of stack_images: load -> plan -> compute -> assemble (-> save)
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The normalised inputs of one stack (what :func:`_load` returns)."""
+
+    ra: np.ndarray                   # positions, deg
+    dec: np.ndarray
+    cat_w: np.ndarray | None         # the catalog's weight column
+    infos: list[ImageInfo]           # the images read
+    paths: dict[str, Path] | None    # output names (checked free), None without ``out``
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Everything decided before a stamp is cut (what :func:`_plan` returns)."""
+
+    inputs: _Inputs
+    pixm: np.ndarray                 # the common pixel matrix, deg per pixel
+    pix_x: float                     # pixel sizes along the image x and y axes, arcsec
+    pix_y: float
+    sx: float                        # the same, signed like CDELT1/CDELT2
+    sy: float
+    rho: float                       # angle of the y axis east of north, deg
+    beam: tuple[float, float, float] | None  # (BMAJ, BMIN, BPA) arcsec, arcsec, deg
+    convs: list[BeamConvention]      # primary-beam convention per image
+    psfs: list[Any]                  # PSF option per image
+    fmask: np.ndarray | None         # Fourier cells the low-frequency filter zeroes
+    seen: np.ndarray                 # (n_pos, n_img) bool: position stacked from image
+    pix: np.ndarray                  # (n_pos, n_img, 2) pixel x, y of each position
+    atten: np.ndarray                # (n_pos, n_img) primary-beam attenuation A, NaN if unused
+    unseen: np.ndarray               # rows outside every image
+    radius: float                    # central mask radius, arcsec
+    mask: np.ndarray                 # (size, size) bool: the central mask
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """The numbers of one stack (what :func:`_compute` returns); per-stamp arrays along
+    the stamps in the order cut (image by image)."""
+
+    stamps: np.ndarray               # (n_stamps, size, size), Jy/beam, A-corrected
+    rows: np.ndarray                 # catalog row of each stamp
+    img_idx: np.ndarray              # image of each stamp
+    frac_x: np.ndarray               # sub-pixel offsets, pixels
+    frac_y: np.ndarray
+    pb_k: np.ndarray                 # A at each stamp's position (NaN if unused)
+    sigma: np.ndarray                # local noise, Jy/beam
+    w: np.ndarray                    # weights W_k
+    stacked: np.ndarray              # (size, size), Jy/beam
+    wsum: np.ndarray                 # per-pixel sum of weights (mean) or count (median)
+    psf_stack: np.ndarray | None
+    flux: float
+    flux_err: float
+    stamp_rms: float
+    peak: float
+    pixfac: float | None
+
+
+def _load(images: ImageSource | Sequence[ImageSource], positions: Any,
+          options: ImstackOptions) -> _Inputs:
+    """Check the outputs are free (before any work), read the positions and the images."""
+    paths = options.output_paths()
+    if paths is not None:
         for p in paths.values():
-            check_output(p, overwrite)
-
-    if pbcor:
-        if image_corrected is True or (isinstance(image_corrected, (list, tuple))
-                                       and any(c is True for c in image_corrected)):
-            raise XstackError("pbcor=True (divide by the beam) contradicts image_corrected=True")
-        image_corrected = False
-
-    # ---- inputs -----------------------------------------------------------------------------
+            check_output(p, options.overwrite)
     ra, dec, cat_w = _positions(positions)
-    if weighting == "column" and cat_w is None:
-        raise XstackError("weighting 'column' needs a catalog with a weight column")
+    if options.weighting == "column" and cat_w is None:
+        raise OptionError("weighting 'column' needs a catalog with a weight column",
+                          option="weighting")
     if isinstance(images, (str, os.PathLike, fits.ImageHDU, fits.PrimaryHDU, ImageInfo)) or (
             hasattr(images, "image") and hasattr(images, "header")):
         images = [images]
@@ -346,9 +550,16 @@ def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *,
              for i, img in enumerate(images)]
     for info in infos:
         ny, nx = info.shape
-        if stamp_size > min(ny, nx):
-            raise XstackError(f"{info.name}: stamp size {stamp_size} is larger than the image "
-                              f"({nx} x {ny} pixels)")
+        if options.stamp_size > min(ny, nx):
+            raise XstackError(f"{info.name}: stamp size {options.stamp_size} is larger than the "
+                              f"image ({nx} x {ny} pixels)")
+    return _Inputs(ra=ra, dec=dec, cat_w=cat_w, infos=infos, paths=paths)
+
+
+def _plan(inputs: _Inputs, options: ImstackOptions) -> _Plan:
+    """Pixel grid, beam, primary-beam conventions, which image sees which position, the
+    filter and the central mask: everything fixed before a stamp is cut."""
+    infos = inputs.infos
     pixm = _check_grids(infos)
     # pixel sizes (arcsec) along the image x and y axes, signed like CDELT1/CDELT2 (for a
     # rotated image the stamp axes stay the pixel axes); rho = angle of the y axis east of north
@@ -358,16 +569,44 @@ def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *,
     sy = pix_y * (-1.0 if pixm[1, 1] < 0 else 1.0)
     rho = float(np.degrees(np.arctan2(pixm[0, 1], pixm[1, 1])))
     beam = next((i.beam_arcsec for i in infos if i.beam_arcsec), None)
-    pbs = _as_list(primary_beam, len(infos), "primary_beam")
-    corr = _as_list(image_corrected, len(infos), "image_corrected")
+    pbs = _as_list(options.primary_beam, len(infos), "primary_beam")
+    corr = _as_list(options.corrected, len(infos), "image_corrected")
     convs: list[BeamConvention] = [
-        image_beam(info, pbs[i], corr[i],
-                   how_to_state="image_corrected=True/False")
+        image_beam(info, pbs[i], corr[i], how_to_state="image_corrected=True/False")
         for i, info in enumerate(infos)]
-    psfs = _as_list(psf, len(infos), "psf")
-    fmask = _filter_mask(filter_lowfreq, stamp_size, pix_x, pix_y, infos[0].frequency_hz)
+    psfs = _as_list(options.psf, len(infos), "psf")
+    fmask = _filter_mask(options, pix_x, pix_y, infos[0].frequency_hz)
 
-    # ---- which positions each image sees ----------------------------------------------------
+    seen, pix, atten = _coverage(inputs, convs, options.weighting)
+    n_pos = inputs.ra.size
+    unseen = np.flatnonzero(~seen.any(axis=1))
+    if unseen.size and not options.skip_outside:
+        k = int(unseen[0])
+        raise XstackError(f"{unseen.size} of {n_pos} positions are outside every image, e.g. row "
+                          f"{k + 1} (ra={inputs.ra[k]:.6f}, dec={inputs.dec[k]:.6f} deg); remove "
+                          "them or skip_outside")
+    if unseen.size == n_pos:
+        raise NoDataError("no position lies inside any image")
+
+    # the central mask of the local noise and the stamp rms
+    if options.beam_mask_arcsec is None:
+        radius = beam[0] if beam else 5.0 * max(pix_x, pix_y)
+    else:
+        radius = float(options.beam_mask_arcsec)
+    mask = kernels.central_mask(options.stamp_size, radius / pix_x, radius / pix_y)
+    if mask.all():
+        raise XstackError(f"stamp of {options.stamp_size} pixels is inside the central mask of "
+                          f"radius {radius:.3g} arcsec: use a larger stamp")
+    return _Plan(inputs=inputs, pixm=pixm, pix_x=pix_x, pix_y=pix_y, sx=sx, sy=sy, rho=rho,
+                 beam=beam, convs=convs, psfs=psfs, fmask=fmask, seen=seen, pix=pix, atten=atten,
+                 unseen=unseen, radius=radius, mask=mask)
+
+
+def _coverage(inputs: _Inputs, convs: list[BeamConvention], weighting: str
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which image sees which position: (seen (n_pos, n_img) bool, pixel x/y
+    (n_pos, n_img, 2), attenuation A (n_pos, n_img), NaN where not needed)."""
+    ra, dec, infos = inputs.ra, inputs.dec, inputs.infos
     n_pos = ra.size
     seen = np.zeros((n_pos, len(infos)), dtype=bool)
     pix = np.full((n_pos, len(infos), 2), np.nan)
@@ -395,45 +634,31 @@ def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *,
             inside &= np.asarray(conv.inside(ra, dec), dtype=bool)
         seen[:, i] = inside
         pix[:, i, 0], pix[:, i, 1] = px, py
-    unseen = np.flatnonzero(~seen.any(axis=1))
-    if unseen.size and not skip_outside:
-        k = int(unseen[0])
-        raise XstackError(f"{unseen.size} of {n_pos} positions are outside every image, e.g. row "
-                          f"{k + 1} (ra={ra[k]:.6f}, dec={dec[k]:.6f} deg); remove them or skip_outside")
-    if unseen.size == n_pos:
-        raise NoDataError("no position lies inside any image")
+    return seen, pix, atten
 
-    # ---- stamps -----------------------------------------------------------------------------
+
+def _cut_stamps(plan: _Plan, options: ImstackOptions
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every (position, image) stamp, aligned, divided by A for an uncorrected image:
+    (stamps, rows, image index, frac_x, frac_y), image by image."""
+    infos = plan.inputs.infos
     blocks, meta = [], []
-    for i in progress_iter(range(len(infos)), "imstack: stamps", progress and len(infos) > 1):
-        rows = np.flatnonzero(seen[:, i])
+    for i in progress_iter(range(len(infos)), "imstack: stamps", options.progress and len(infos) > 1):
+        rows = np.flatnonzero(plan.seen[:, i])
         if rows.size == 0:
             continue
-        st, fx, fy = kernels.align_stamps(infos[i].data, pix[rows, i, 0], pix[rows, i, 1],
-                                          stamp_size, subpixel)
-        if not convs[i].corrected:
-            st /= atten[rows, i][:, None, None]
+        st, fx, fy = kernels.align_stamps(infos[i].data, plan.pix[rows, i, 0], plan.pix[rows, i, 1],
+                                          options.stamp_size, options.subpixel)
+        if not plan.convs[i].corrected:
+            st /= plan.atten[rows, i][:, None, None]
         blocks.append(st)
         meta.append((rows, np.full(rows.size, i), fx, fy))
-    stamps = np.concatenate(blocks)
-    rows = np.concatenate([m[0] for m in meta])
-    img_idx = np.concatenate([m[1] for m in meta])
-    frac_x = np.concatenate([m[2] for m in meta])
-    frac_y = np.concatenate([m[3] for m in meta])
-    pb_k = atten[rows, img_idx]
+    return (np.concatenate(blocks), *(np.concatenate([m[j] for m in meta]) for j in range(4)))
 
-    # ---- local noise and weights ------------------------------------------------------------
-    if beam_mask_arcsec is None:
-        radius = beam[0] if beam else 5.0 * max(pix_x, pix_y)
-    else:
-        radius = float(beam_mask_arcsec)
-        if not radius > 0:
-            raise XstackError(f"beam mask radius must be positive, got {beam_mask_arcsec}")
-    mask = kernels.central_mask(stamp_size, radius / pix_x, radius / pix_y)
-    if mask.all():
-        raise XstackError(f"stamp of {stamp_size} pixels is inside the central mask of radius "
-                          f"{radius:.3g} arcsec: use a larger stamp")
-    sigma = kernels.local_sigma(stamps, mask)
+
+def _weights(sigma: np.ndarray, pb_k: np.ndarray, rows: np.ndarray, cat_w: np.ndarray | None,
+             weighting: str) -> np.ndarray:
+    """The weight W_k of each stamp (paper eq. 3 for ``sigma2``)."""
     if weighting == "sigma2":
         with np.errstate(divide="ignore"):
             w = np.where(np.isfinite(sigma) & (sigma > 0), 1.0 / sigma**2, 0.0)
@@ -445,14 +670,22 @@ def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *,
         w = np.ones(rows.size)
     if not np.any(w > 0):
         raise NoDataError("every stamp has zero weight (no usable noise estimate?)")
+    return w
 
-    # ---- aggregation ------------------------------------------------------------------------
-    if method == "mean":
+
+def _compute(plan: _Plan, options: ImstackOptions) -> _Measured:
+    """Cut the stamps, weigh them, stack them; the stack's noise, PSF, filter and numbers."""
+    stamps, rows, img_idx, frac_x, frac_y = _cut_stamps(plan, options)
+    pb_k = plan.atten[rows, img_idx]
+    sigma = kernels.local_sigma(stamps, plan.mask)
+    w = _weights(sigma, pb_k, rows, plan.inputs.cat_w, options.weighting)
+
+    if options.method == "mean":
         stacked, wsum = kernels.weighted_nanmean(stamps, w)
     else:
         use = w > 0
         stacked, wsum = kernels.nanmedian_stack(stamps[use])
-    c = stamp_size // 2
+    c = options.stamp_size // 2
     center_ok = np.isfinite(stamps[:, c, c]) & (w > 0)
     if not center_ok.any():
         # the nearest pixels are finite (or the position would count as uncovered), but a
@@ -463,73 +696,91 @@ def stack_images(images: ImageSource | Sequence[ImageSource], positions: Any, *,
             "shift; use subpixel=False or images without blanking near the positions")
     # the stacked value's noise from the stamps' local noise (eq. 5 / 6)
     # (the median is unweighted: its error is that of the equal-weight mean times sqrt(pi/2))
-    flux_err = kernels.weighted_error(sigma[center_ok], w[center_ok] if method == "mean"
+    flux_err = kernels.weighted_error(sigma[center_ok], w[center_ok] if options.method == "mean"
                                       else np.ones(int(center_ok.sum())))
-    if method == "median":
+    if options.method == "median":
         flux_err *= kernels.MEDIAN_NOISE_FACTOR
 
-    # ---- PSF of the stack -------------------------------------------------------------------
-    psf_stack = _psf_stack(infos, psfs, stamp_size, img_idx, frac_x, frac_y, w, subpixel)
-
-    # ---- low-spatial-frequency filter (paper §5.3) ------------------------------------------
-    if fmask is not None:
-        stacked = kernels.lowfreq_filter(stacked, fmask)
+    psf_stack = _psf_stack(plan.inputs.infos, plan.psfs, options.stamp_size, img_idx, frac_x,
+                           frac_y, w, options.subpixel)
+    # the low-spatial-frequency filter (paper §5.3), on the stack and its PSF alike
+    if plan.fmask is not None:
+        stacked = kernels.lowfreq_filter(stacked, plan.fmask)
         if psf_stack is not None:
-            psf_stack = kernels.lowfreq_filter(psf_stack, fmask)
+            psf_stack = kernels.lowfreq_filter(psf_stack, plan.fmask)
 
     flux = float(stacked[c, c])
-    outside = stacked[~mask]
+    outside = stacked[~plan.mask]
     stamp_rms = float(np.nanstd(outside)) if np.isfinite(outside).sum() > 1 else float("nan")
-    inner = np.where(mask, stacked, np.nan)
+    inner = np.where(plan.mask, stacked, np.nan)
     peak = float(np.nanmax(inner)) if np.isfinite(inner).any() else float("nan")
     pixfac = None
-    if beam and not subpixel:
-        pixfac = kernels.pixelisation_factor(beam[0], beam[1], beam[2] - rho, pix_x, pix_y)
+    if plan.beam and not options.subpixel:
+        beam = plan.beam
+        pixfac = kernels.pixelisation_factor(beam[0], beam[1], beam[2] - plan.rho, plan.pix_x,
+                                             plan.pix_y)
+    return _Measured(stamps=stamps, rows=rows, img_idx=img_idx, frac_x=frac_x, frac_y=frac_y,
+                     pb_k=pb_k, sigma=sigma, w=w, stacked=stacked, wsum=wsum, psf_stack=psf_stack,
+                     flux=flux, flux_err=flux_err, stamp_rms=stamp_rms, peak=peak, pixfac=pixfac)
 
-    # ---- xarray objects ---------------------------------------------------------------------
-    off = kernels.offsets_grid(stamp_size)
+
+def _assemble(plan: _Plan, m: _Measured, options: ImstackOptions) -> ImstackResult:
+    """The result: the cube, the stack and its PSF as xarray objects (arcsec offsets), the
+    weights table, the numbers and the options used."""
+    infos, ra, dec = plan.inputs.infos, plan.inputs.ra, plan.inputs.dec
+    off = kernels.offsets_grid(options.stamp_size)
     # x = offset along the image x axis as Delta(RA) cos(dec) (east positive; it decreases with
     # the pixel index for the usual CDELT1 < 0), y = offset north
-    xcoord = xr.Variable("x", off * sx + 0.0, attrs={"units": "arcsec",
+    xcoord = xr.Variable("x", off * plan.sx + 0.0, attrs={"units": "arcsec",
                          "long_name": "offset east (Delta RA cos Dec) along the image x axis"})
-    ycoord = xr.Variable("y", off * sy + 0.0, attrs={"units": "arcsec",
+    ycoord = xr.Variable("y", off * plan.sy + 0.0, attrs={"units": "arcsec",
                          "long_name": "offset north along the image y axis"})
+    grid = {"x": xcoord, "y": ycoord}
     bunit = infos[0].bunit or "Jy/beam"
     cube = xr.DataArray(
-        stamps, dims=("source", "y", "x"),
-        coords={"x": xcoord, "y": ycoord,
-                "position": ("source", rows.astype(np.int64)),
-                "image": ("source", img_idx.astype(np.int64)),
-                "ra": ("source", ra[rows], {"units": "deg"}),
-                "dec": ("source", dec[rows], {"units": "deg"}),
-                "weight": ("source", w),
-                "sigma": ("source", sigma, {"units": bunit}),
-                "pb": ("source", pb_k),
-                "frac_x": ("source", frac_x, {"units": "pixel"}),
-                "frac_y": ("source", frac_y, {"units": "pixel"})},
-        name="stamps", attrs={"units": bunit, "method": method, "weighting": weighting,
-                              "subpixel": str(subpixel or "nearest"), "stamp_size": stamp_size})
-    weights = np.zeros((n_pos, len(infos)))
-    weights[rows, img_idx] = w
-    stacked_da = xr.DataArray(stacked, dims=("y", "x"), coords={"x": xcoord, "y": ycoord},
-                              name="stacked", attrs={"units": bunit})
-    wsum_da = xr.DataArray(wsum, dims=("y", "x"), coords={"x": xcoord, "y": ycoord},
-                           name="weight_sum" if method == "mean" else "n_stamps")
-    psf_da = None if psf_stack is None else xr.DataArray(
-        psf_stack, dims=("y", "x"), coords={"x": xcoord, "y": ycoord}, name="psf")
-    n_positions = int(np.unique(rows[w > 0]).size)
-    result = ImstackResult(
-        cube=cube, weights=weights, stacked=stacked_da, flux_jy=flux, flux_err_jy=flux_err,
-        n_positions=n_positions, psf_stamp=psf_da, weight_sum=wsum_da, n_stamps=int(np.sum(w > 0)),
-        stamp_rms_jy=stamp_rms, peak_jy=peak, method=method, weighting=weighting,
-        subpixel=subpixel, beam_arcsec=beam, mask_radius_arcsec=radius, pixel_arcsec=(pix_x, pix_y),
-        pixelisation_factor=pixfac, filter_lowfreq=filter_lowfreq,
-        skipped_rows=[int(k) + 1 for k in unseen],
-        primary_beam=[dict(c.to_dict(), image=info.name) for c, info in zip(convs, infos)])
-    if paths is not None:
-        ra0, dec0 = _mean_position(ra[rows], dec[rows], np.where(w > 0, w, 0) / np.sum(w))
-        _write_outputs(result, paths, pixm, ra0, dec0, overwrite)
-    return result
+        m.stamps, dims=("source", "y", "x"),
+        coords={**grid,
+                "position": ("source", m.rows.astype(np.int64)),
+                "image": ("source", m.img_idx.astype(np.int64)),
+                "ra": ("source", ra[m.rows], {"units": "deg"}),
+                "dec": ("source", dec[m.rows], {"units": "deg"}),
+                "weight": ("source", m.w),
+                "sigma": ("source", m.sigma, {"units": bunit}),
+                "pb": ("source", m.pb_k),
+                "frac_x": ("source", m.frac_x, {"units": "pixel"}),
+                "frac_y": ("source", m.frac_y, {"units": "pixel"})},
+        name="stamps", attrs={"units": bunit, "method": options.method,
+                              "weighting": options.weighting,
+                              "subpixel": str(options.subpixel or "nearest"),
+                              "stamp_size": options.stamp_size})
+    weights = np.zeros((ra.size, len(infos)))
+    weights[m.rows, m.img_idx] = m.w
+    stacked_da = xr.DataArray(m.stacked, dims=("y", "x"), coords=grid, name="stacked",
+                              attrs={"units": bunit})
+    wsum_da = xr.DataArray(m.wsum, dims=("y", "x"), coords=grid,
+                           name="weight_sum" if options.method == "mean" else "n_stamps")
+    psf_da = None if m.psf_stack is None else xr.DataArray(
+        m.psf_stack, dims=("y", "x"), coords=grid, name="psf")
+    used = {**options.to_dict(), "n_images": len(infos), "mask_radius_arcsec": plan.radius}
+    return ImstackResult(
+        cube=cube, weights=weights, stacked=stacked_da, flux_jy=m.flux, flux_err_jy=m.flux_err,
+        n_positions=int(np.unique(m.rows[m.w > 0]).size), psf_stamp=psf_da, weight_sum=wsum_da,
+        n_stamps=int(np.sum(m.w > 0)), stamp_rms_jy=m.stamp_rms, peak_jy=m.peak,
+        method=options.method, weighting=options.weighting, subpixel=options.subpixel,
+        beam_arcsec=plan.beam, mask_radius_arcsec=plan.radius,
+        pixel_arcsec=(plan.pix_x, plan.pix_y), pixelisation_factor=m.pixfac,
+        filter_lowfreq=options.filter_lowfreq, skipped_rows=[int(k) + 1 for k in plan.unseen],
+        primary_beam=[dict(c.to_dict(), image=info.name) for c, info in zip(plan.convs, infos)],
+        options=used)
+
+
+def _save(result: ImstackResult, plan: _Plan, m: _Measured, options: ImstackOptions) -> None:
+    """Write the outputs (atomically); the stamp's nominal center is the weighted mean
+    stacking position."""
+    ra, dec = plan.inputs.ra[m.rows], plan.inputs.dec[m.rows]
+    ra0, dec0 = _mean_position(ra, dec, np.where(m.w > 0, m.w, 0) / np.sum(m.w))
+    _write_outputs(result, plan.inputs.paths, plan.pixm, ra0, dec0, options.overwrite)
+
 
 
 def _psf_stamp_for(info: ImageInfo, psf: Any, stamp_size: int) -> np.ndarray | None:

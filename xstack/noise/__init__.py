@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["NoiseResult", "estimate_noise"]
+__all__ = ["NoiseOptions", "NoiseResult", "estimate_noise"]
 
 
 def __getattr__(name: str) -> Any:
-    if name in ("estimate_noise", "NoiseResult"):
+    if name in ("estimate_noise", "NoiseResult", "NoiseOptions"):
         from xstack.noise import estimate
         return getattr(estimate, name)
     raise AttributeError(name)

@@ -14,8 +14,9 @@ linear: stack(data + model, pos) = stack(data, pos) + stack(model, pos)).
 
 from __future__ import annotations
 
+import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -24,8 +25,9 @@ from xstack import _vocabulary
 from xstack._antenna import MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions
 from xstack._json import finite_or_none
-from xstack._result import Result
+from xstack._result import Result, json_ready
 from xstack._scatter import EMPIRICAL_TOLERANCE
+from xstack._select import uv_limits
 from xstack.beams import (
     DEFAULT_PB_CUTOFF,
     PrimaryBeam,
@@ -37,7 +39,7 @@ from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn
 from xstack.errors import NoDataError, OptionError, XstackError
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.noise import kernels
-from xstack.noise.positions import ARCSEC, make_region, random_positions
+from xstack.noise.positions import ARCSEC, Region, make_region, random_positions
 
 METHODS = _vocabulary.NOISE_METHODS
 ENGINES = _vocabulary.NOISE_ENGINES
@@ -62,6 +64,8 @@ class NoiseResult(Result):
     n_positions : positions per realisation
     profile : uv-profiles of the realisations (``q_klambda``, ``values`` (R, nbins),
         ``weight`` per bin) when requested
+    options : the options used (:meth:`NoiseOptions.to_dict`), with what the run decided
+        (``min_separation_arcsec`` when defaulted, the ``engine`` that ran)
     """
 
     method: str
@@ -75,6 +79,7 @@ class NoiseResult(Result):
     domain: str = "uv"
     profile: dict[str, Any] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = field(default_factory=dict)
     #: (R, n, 2) ra, dec (deg) of the random positions (mc, random), not written to JSON
     positions_deg: np.ndarray | None = None
     #: (R, n) fluxes injected at those positions (mc), Jy
@@ -92,6 +97,8 @@ class NoiseResult(Result):
                 out["injected_jy"] = [finite_or_none(v) for v in self.injected]
         for k, v in self.extra.items():
             out[k] = finite_or_none(v) if isinstance(v, (float, np.floating)) else v
+        if self.options:
+            out["options"] = json_ready(self.options)
         return out
 
     def table(self):
@@ -108,6 +115,145 @@ class NoiseResult(Result):
             t[name].unit = "Jy"
         return t
 
+
+
+# ----------------------------------------------------------------------------- options
+
+def _describe(value: Any) -> Any:
+    """A JSON-ready account of an option value given as an object (path, table, beam, array)."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, PrimaryBeam):
+        return value.model
+    if isinstance(value, Region):
+        return value.kind
+    if hasattr(value, "colnames"):  # an astropy Table of positions
+        return f"table of {len(value)} rows"
+    return json_ready(np.asarray(value, dtype=np.float64))
+
+
+def _number(name: str, value: Any, kind: type = float) -> Any:
+    """``value`` as ``kind`` (int or float), or an OptionError naming ``name``."""
+    try:
+        out = kind(value)
+    except (TypeError, ValueError):
+        raise OptionError(f"{name} must be a number, got {value!r}", option=name) from None
+    if kind is int and out != value and not isinstance(value, str):
+        raise OptionError(f"{name} must be a whole number, got {value!r}", option=name)
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class NoiseOptions:
+    """Every option of :func:`estimate_noise`, checked before any data are read.
+
+    The fields are the keyword arguments of :func:`estimate_noise` (same names, defaults and
+    units; see there). A bad value raises :class:`~xstack.errors.OptionError` naming the
+    parameter. ``realizations``, ``profile_bins``, ``seed``, ``pb_cutoff`` and the radii are
+    stored normalized (int / float); a string ``flux`` is stored in Jy.
+
+    Attributes
+    ----------
+    uv_range : (uvmin, uvmax) parsed as ``(value, "m" | "lambda")`` pairs (or None each).
+    """
+
+    method: str = "mc"
+    realizations: int = 100
+    flux: Any = None
+    min_separation_arcsec: float | None = None
+    avoid: Any = None
+    seed: int = 0
+    domain: str = "uv"
+    weighting: str = "pb"
+    primary_beam: str | PrimaryBeam | None = None
+    pb_cutoff: float = DEFAULT_PB_CUTOFF
+    uvmin: Any = None
+    uvmax: Any = None
+    field_radius_arcsec: float | None = None
+    profile_bins: int = 0
+    psf: Any = None
+    progress: bool = False
+    engine: str = "auto"
+    antenna_tol_rad: float = kernels.ANTENNA_TOL_RAD
+    region: Any = "hull"
+    image_corrected: bool | None = None
+    autocorrelations: bool = False
+    uv_range: tuple[Any, Any] = field(init=False, repr=False, compare=False, default=(None, None))
+
+    def __post_init__(self) -> None:
+        self._check_names()
+        set_ = object.__setattr__  # frozen: normalized values are set once, here
+        set_(self, "realizations", _number("realizations", self.realizations, int))
+        if self.method != "analytic" and self.realizations < 2:
+            raise OptionError("need at least 2 realisations to estimate a scatter, got "
+                              f"{self.realizations}", option="realizations")
+        set_(self, "seed", _number("seed", self.seed, int))
+        set_(self, "profile_bins", _number("profile_bins", self.profile_bins, int))
+        set_(self, "pb_cutoff", _number("pb_cutoff", self.pb_cutoff))
+        set_(self, "antenna_tol_rad", _number("antenna_tol_rad", self.antenna_tol_rad))
+        checks = (("profile_bins", self.profile_bins >= 0, "must be >= 0"),
+                  ("pb_cutoff", 0 <= self.pb_cutoff < 1, "must be in [0, 1)"),
+                  ("antenna_tol_rad", self.antenna_tol_rad > 0, "must be > 0"))
+        for name, ok, rule in checks:
+            if not ok:
+                raise OptionError(f"{name} {rule}, got {getattr(self, name)}", option=name)
+        for name, lowest in (("min_separation_arcsec", 0.0), ("field_radius_arcsec", None)):
+            value = getattr(self, name)
+            if value is not None:
+                value = _number(name, value)
+                if not (value >= 0 if lowest == 0.0 else value > 0):
+                    raise OptionError(f"{name} must be {'>= 0' if lowest == 0.0 else '> 0'}, "
+                                      f"got {value}", option=name)
+                set_(self, name, value)
+        if isinstance(self.flux, str):
+            from xstack.coords import parse_flux
+
+            try:
+                set_(self, "flux", parse_flux(self.flux))
+            except XstackError as exc:
+                raise OptionError(f"flux: {exc}", option="flux") from None
+        for name in ("uvmin", "uvmax"):
+            try:
+                parse_uv_limit(getattr(self, name))
+            except (XstackError, ValueError, TypeError) as exc:
+                raise OptionError(f"{name}: {exc}", option=name) from None
+        set_(self, "uv_range", uv_limits(self.uvmin, self.uvmax))
+
+    def _check_names(self) -> None:
+        """The options that take one of a few names."""
+        for name, value, allowed in (("method", self.method, METHODS),
+                                     ("domain", self.domain, ("uv", "image")),
+                                     ("weighting", self.weighting, WEIGHTINGS),
+                                     ("engine", self.engine, ENGINES)):
+            if value not in allowed:
+                what = "noise method" if name == "method" else name
+                raise OptionError(f"unknown {what} {value!r} (use {', '.join(allowed)})",
+                                  option=name)
+        if self.domain == "image" and not (
+                self.region is None or (isinstance(self.region, str) and self.region.lower() == "hull")):
+            raise OptionError("region: only the default (hull) is available for images so far; "
+                              "leave out region=", option="region")
+        if (self.domain == "uv" and not isinstance(self.primary_beam, PrimaryBeam)
+                and self.primary_beam not in (None, "auto", "airy", "gaussian", "none")):
+            raise OptionError(f"unknown primary beam {self.primary_beam!r} for the noise "
+                              "estimate (use airy, gaussian or none)", option="primary_beam")
+        if self.image_corrected not in (None, True, False):
+            raise OptionError(f"image_corrected must be True, False or None, got "
+                              f"{self.image_corrected!r}", option="image_corrected")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready options (what the result's ``options`` starts from; ``progress``, which
+        changes no number, is left out; objects such as tables or beams are described)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            if f.name in ("progress", "uv_range"):
+                continue
+            value = getattr(self, f.name)
+            out[f.name] = str(value) if f.name in ("uvmin", "uvmax") and value is not None \
+                else _describe(value)
+        return out
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -129,10 +275,7 @@ class _Pointing:
         dish = dish_diameter(ds)
         if isinstance(primary_beam, PrimaryBeam):
             self.beam = primary_beam
-        else:
-            if primary_beam not in (None, "airy", "gaussian", "none"):
-                raise XstackError(f"unknown primary beam {primary_beam!r} for the noise "
-                                  "estimate (use airy, gaussian or none)")
+        else:  # a model name, checked by NoiseOptions
             self.beam = standard_beam(str(ds.attrs["telescope_name"]), dish, model=primary_beam,
                                       cutoff=cutoff)
         self.fmid = float(np.mean(self.freq))
@@ -303,278 +446,374 @@ def estimate_noise(data: Any, positions: Any, *, method: str = "mc", realization
         Unknown method, fewer than 2 realisations, no data in the uv range, a catalog too
         dense to place random positions.
     """
-    if method not in METHODS:
-        raise OptionError(f"unknown noise method {method!r} (use {', '.join(METHODS)})")
-    if domain not in ("uv", "image"):
-        raise OptionError(f"unknown domain {domain!r} (use uv or image)")
-    if weighting not in WEIGHTINGS:
-        raise OptionError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
-    if engine not in ENGINES:
-        raise OptionError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
-    realizations = int(realizations)
-    if method != "analytic" and realizations < 2:
-        raise OptionError(f"need at least 2 realisations to estimate a scatter, got {realizations}")
-    if domain == "image":
+    options = NoiseOptions(
+        method=method, realizations=realizations, flux=flux,
+        min_separation_arcsec=min_separation_arcsec, avoid=avoid, seed=seed, domain=domain,
+        weighting=weighting, primary_beam=primary_beam, pb_cutoff=pb_cutoff, uvmin=uvmin,
+        uvmax=uvmax, field_radius_arcsec=field_radius_arcsec, profile_bins=profile_bins,
+        psf=psf, progress=progress, engine=engine, antenna_tol_rad=antenna_tol_rad,
+        region=region, image_corrected=image_corrected, autocorrelations=autocorrelations)
+    if options.domain == "image":
         from xstack.noise.image import estimate_noise_image
 
-        if not (region is None or (isinstance(region, str) and region.lower() == "hull")):
-            raise OptionError("region: only the default (hull) is available for images so far; "
-                              "leave out region=", option="region")
+        return estimate_noise_image(data, positions, options)
+    inputs = _load(data, positions, options)       # targets, weights, pointings (no data)
+    plan = _plan(inputs, options)                  # every realisation's positions (no data)
+    measured = _compute(inputs, plan, options)     # the one pass over the visibilities
+    return _assemble(inputs, plan, measured, options)
 
-        return estimate_noise_image(data, positions, method=method, realizations=realizations,
-                                    flux=flux, min_separation_arcsec=min_separation_arcsec,
-                                    avoid=avoid, seed=seed, weighting=weighting,
-                                    primary_beam=primary_beam, pb_cutoff=pb_cutoff,
-                                    field_radius_arcsec=field_radius_arcsec, psf=psf,
-                                    image_corrected=image_corrected)
-    lo, hi = parse_uv_limit(uvmin), parse_uv_limit(uvmax)
+
+# ----------------------------------------------------------------------------- phases
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The normalized inputs: targets (radians), their weights, the pointings (no data read)."""
+
+    ra: np.ndarray
+    dec: np.ndarray
+    cat: Any
+    w: np.ndarray
+    pointings: list[_Pointing]
+    inside_any: np.ndarray  # target inside some pointing (the one rule of every stage)
+
+
+@dataclass
+class _Plan:
+    """The position groups evaluated in the one pass: R random ones (mc, random), then the
+    targets; and what the random draws decided (separation, region, bootstrap resamples)."""
+
+    groups_ra: list[np.ndarray]
+    groups_dec: list[np.ndarray]
+    groups_w: list[np.ndarray]
+    groups_s: list[np.ndarray]
+    n_real: int
+    min_sep: float | None
+    region: Any
+    need_flux_for_mc: bool
+    nbins: int
+    edges: np.ndarray | None
+    counts: np.ndarray | None  # (R, n_targets) bootstrap multiplicities
+
+    def __post_init__(self) -> None:
+        self.sizes = np.array([g.size for g in self.groups_ra])
+        self.starts = np.concatenate([[0], np.cumsum(self.sizes)]).astype(np.int64)
+        self.all_ra, self.all_dec = np.concatenate(self.groups_ra), np.concatenate(self.groups_dec)
+        self.all_w, self.all_s = np.concatenate(self.groups_w), np.concatenate(self.groups_s)
+
+
+@dataclass
+class _Measured:
+    """Sums of the one pass over the data, per group (G) and per target and pointing (P, n)."""
+
+    num: np.ndarray           # sum of data terms, per group
+    num_m: np.ndarray         # sum of injected-model terms, per group
+    den: np.ndarray           # sum of weights of the pointings a group is inside
+    expect: np.ndarray        # injected flux seen by a noiseless stack
+    prof: np.ndarray
+    prof_m: np.ndarray
+    prof_w: np.ndarray
+    X_t: np.ndarray           # per-target data term (1/A coefficients)
+    inside_t: np.ndarray
+    var_t: np.ndarray         # sum_c W_c / A_kc^2 per pointing
+    var_emp_t: np.ndarray     # the same with measured noise
+    wk_t: np.ndarray          # w_k of the targets per pointing
+    wtot_p: np.ndarray
+    any_data: bool = False
+    engine_blocks: dict[str, int] = field(default_factory=lambda: {"antenna": 0, "numba": 0})
+    engine_info: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def zeros(cls, n_groups: int, nbins: int, n_pointings: int, n_targets: int) -> _Measured:
+        """All sums zero."""
+        g, p = np.zeros(n_groups), np.zeros((n_groups, max(nbins, 0)))
+        t = np.zeros((n_pointings, n_targets))
+        return cls(num=g.copy(), num_m=g.copy(), den=g.copy(), expect=g.copy(), prof=p.copy(),
+                   prof_m=p.copy(), prof_w=p.copy(), X_t=t.copy(),
+                   inside_t=np.zeros((n_pointings, n_targets), bool), var_t=t.copy(),
+                   var_emp_t=t.copy(), wk_t=t.copy(), wtot_p=np.zeros(n_pointings))
+
+
+def _load(data: Any, positions: Any, options: NoiseOptions) -> _Inputs:
+    """Targets, their weights and the pointings (beams, frequencies; no visibility read)."""
     ra_t, dec_t, cat = _positions_from(positions)
-    n_t = ra_t.size
-    w_t = np.ones(n_t)
-    if weighting == "column":
+    w_t = np.ones(ra_t.size)
+    if options.weighting == "column":
         if cat is None or "weight" not in cat.colnames:
             raise XstackError("weighting='column' needs a catalog with a weight column")
         w_t = np.asarray(cat["weight"], dtype=np.float64)
-    pointings = [_Pointing(n, ds, primary_beam, pb_cutoff)
-                 for n, ds in as_partitions(data, autocorrelations)]
-    rng = np.random.default_rng(seed)
-
-    inside_any = np.zeros(n_t, dtype=bool)
+    beam = None if options.primary_beam == "auto" else options.primary_beam
+    pointings = [_Pointing(n, ds, beam, options.pb_cutoff)
+                 for n, ds in as_partitions(data, options.autocorrelations)]
+    inside_any = np.zeros(ra_t.size, dtype=bool)
     for pt in pointings:
         inside_any |= pt.inside(ra_t, dec_t)
     if not inside_any.any():
         raise NoDataError("no target position lies inside a primary beam (above the cutoff)")
+    return _Inputs(ra=ra_t, dec=dec_t, cat=cat, w=w_t, pointings=pointings,
+                   inside_any=inside_any)
 
-    # ---- position groups -------------------------------------------------------------
-    groups_ra, groups_dec, groups_w, groups_s = [], [], [], []
+
+def _plan(inputs: _Inputs, options: NoiseOptions) -> _Plan:
+    """The position groups of every realisation (random draws, no visibility read; only the
+    UVW when the default separation or the profile bins need the longest baseline)."""
+    rng = np.random.default_rng(options.seed)
+    groups: tuple[list, list, list, list] = ([], [], [], [])
+    min_sep = region = None
     n_real = 0
-    min_sep = None
-    if method in ("mc", "random"):
-        if min_separation_arcsec is None:
-            qmax = _max_q_lambda(pointings)
-            min_sep = 3.0 / qmax if qmax > 0 else 0.0
-        else:
-            min_sep = float(min_separation_arcsec) * ARCSEC
-        av_ra, av_dec = [ra_t], [dec_t]
-        if avoid is not None:
-            a_ra, a_dec, _ = _positions_from(avoid)
-            av_ra.append(a_ra)
-            av_dec.append(a_dec)
-        # where random positions go: the targets' footprint (default), the whole beam, a
-        # polygon or a mask; always inside some pointing's disc (beam cutoff / field radius)
-        reg = make_region(region, ra_t[inside_any], dec_t[inside_any], min_margin=min_sep)
-        centers = np.array([pt.center for pt in pointings])
-        radii = np.array([
-            np.pi if (field_radius_arcsec is None and pt.beam.model == "none"
-                      and reg.proposal is not None)  # no beam edge: the region alone
-            else pt.radius(None if field_radius_arcsec is None else field_radius_arcsec * ARCSEC)
-            for pt in pointings])
-        uniq, idx = np.unique(np.round(centers, 12), axis=0, return_index=True)
-        extra_region = reg.describe(centers[idx], radii[idx])
-        n_fake = int(inside_any.sum())
-        r_ra, r_dec = random_positions(n_fake, realizations, centers[idx], radii[idx],
-                                       avoid_ra=np.concatenate(av_ra),
-                                       avoid_dec=np.concatenate(av_dec), min_separation=min_sep,
-                                       rng=rng, region=reg)
-        s_fake = np.zeros(n_fake)
-        if method == "mc":
-            s_fake = _injected_fluxes(flux, cat, inside_any, n_fake)
-            if s_fake is None:  # unit flux now, scaled by the measured target flux below
-                s_fake = np.ones(n_fake)
-        w_fake = w_t[inside_any]
-        for r in range(realizations):
-            perm = rng.permutation(n_fake)
-            groups_ra.append(r_ra[r])
-            groups_dec.append(r_dec[r])
-            groups_w.append(w_fake[perm])
-            groups_s.append(s_fake[perm])
-        n_real = realizations
+    if options.method in ("mc", "random"):
+        min_sep, region = _random_groups(inputs, options, rng, groups)
+        n_real = options.realizations
     # the real targets form the last group (measured flux; no injection)
-    groups_ra.append(ra_t)
-    groups_dec.append(dec_t)
-    groups_w.append(w_t)
-    groups_s.append(np.zeros(n_t))
-    sizes = np.array([g.size for g in groups_ra])
-    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    all_ra, all_dec = np.concatenate(groups_ra), np.concatenate(groups_dec)
-    all_w, all_s = np.concatenate(groups_w), np.concatenate(groups_s)
-    G = sizes.size
-    need_flux_for_mc = method == "mc" and flux is None and (cat is None or "flux" not in cat.colnames)
-
-    # ---- uv-profile bins -------------------------------------------------------------
-    nbins = int(profile_bins) if method in ("mc", "random") else 0
+    for g, v in zip(groups, (inputs.ra, inputs.dec, inputs.w, np.zeros(inputs.ra.size))):
+        g.append(v)
+    cat = inputs.cat
+    need_flux = (options.method == "mc" and options.flux is None
+                 and (cat is None or "flux" not in cat.colnames))
+    nbins = options.profile_bins if options.method in ("mc", "random") else 0
     edges = None
     if nbins > 0:
-        edges = np.linspace(0.0, _max_q_lambda(pointings) * (1 + 1e-9), nbins + 1)
-
-    # ---- one pass over every pointing ---------------------------------------------------
-    num = np.zeros(G)            # sum of data terms, per group
-    num_m = np.zeros(G)          # sum of injected-model terms, per group
-    den = np.zeros(G)            # sum of weights of the pointings a group is inside
-    expect = np.zeros(G)         # injected flux seen by a noiseless stack
-    prof = np.zeros((G, max(nbins, 0)))
-    prof_m = np.zeros((G, max(nbins, 0)))
-    prof_w = np.zeros((G, max(nbins, 0)))
-    X_t = np.zeros((len(pointings), n_t))          # per-target data term (1/A coefficients)
-    inside_t = np.zeros((len(pointings), n_t), bool)
-    var_t = np.zeros((len(pointings), n_t))       # sum_c W_c / A_kc^2 per pointing
-    var_emp_t = np.zeros((len(pointings), n_t))   # the same with measured noise
-    wk_t = np.zeros((len(pointings), n_t))        # w_k of the targets per pointing
-    wtot_p = np.zeros(len(pointings))
-    any_data = False
-    engine_blocks = {"antenna": 0, "numba": 0}
-    engine_info: dict[str, Any] = {}
-    from xstack._progress import progress_iter
-
-    for ip, pt in enumerate(pointings):
-        A = pt.attenuation(all_ra, all_dec)                     # (nchan, K)
-        inside = pt.inside(all_ra, all_dec)
-        l, m, _, n1 = radec_to_lmn(all_ra, all_dec, *pt.center)
-        wk = all_w.copy()
-        if weighting == "pb":
-            wk = np.asarray(pt.beam(angular_separation(all_ra, all_dec, *pt.center), pt.fmid)) ** 2
-        wk = np.where(inside, wk, 0.0)
-        gsum = np.add.reduceat(wk, starts[:-1]) if G else np.zeros(0)
-        gsum = np.where(sizes > 0, gsum, 0.0)
-        norm = np.repeat(np.where(gsum > 0, gsum, 1.0), sizes)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv_a = np.where(inside[None, :] & (A > 0), 1.0 / A, 0.0)
-        coef = inv_a * (wk / norm)[None, :]                  # (nchan, K)
-        b = all_s[None, :] * A if method == "mc" else None
-        tsl = slice(starts[-2], starts[-1])
-        inside_t[ip] = inside[tsl]
-        wchan = np.zeros(pt.freq.size)
-        wvchan = np.zeros(pt.freq.size)
-        wbin = np.zeros(max(nbins, 0))
-        wk_t[ip] = wk[tsl]
-        num_p, num_m_p = np.zeros(G), np.zeros(G)
-        prof_p, prof_m_p = np.zeros_like(prof), np.zeros_like(prof)
-        blocks = progress_iter(_blocks(pt, lo, hi, empirical=method == "analytic"),
-                               f"noise {pt.name}", enabled=progress)
-        for uvw, vis_w, wsum, wvar in blocks:
-            if not np.any(wsum > 0):
-                continue
-            any_data = True
-            wchan += wsum.sum(axis=0)
-            if wvar is not None:
-                wvchan += wvar.sum(axis=0)
-            if method in ("analytic", "bootstrap"):
-                X_t[ip] += kernels.position_sums(uvw, pt.freq, vis_w, wsum, l[tsl], m[tsl], n1[tsl],
-                                                 inv_a[:, tsl])
-                continue
-            bins = None
-            if nbins:
-                q = (np.hypot(uvw[:, 0], uvw[:, 1])[:, None] * pt.freq[None, :] / SPEED_OF_LIGHT)
-                bins = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, nbins - 1)
-                bins = np.where(wsum > 0, bins, -1)
-                wbin += np.bincount(bins[bins >= 0], wsum[bins >= 0], nbins)
-            d, mdl, pr, prm = _group_sums(pt, uvw, vis_w, wsum, l, m, n1, coef, b, starts,
-                                          bins, nbins, engine, antenna_tol_rad, engine_blocks,
-                                          engine_info)
-            num_p += d
-            num_m_p += mdl
-            prof_p += pr
-            prof_m_p += prm
-        # pointings combine as in xstack.uvstack: each weighted by its sum of w_k
-        wtot = float(wchan.sum())
-        wtot_p[ip] = wtot
-        num += gsum * num_p
-        num_m += gsum * num_m_p
-        den += gsum * wtot
-        var_t[ip] = (wchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
-        var_emp_t[ip] = (wvchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
-        if b is not None:
-            expect += gsum * np.add.reduceat((wchan[:, None] * coef * b).sum(axis=0),
-                                             starts[:-1]) * (sizes > 0)
-        if nbins:
-            prof += gsum[:, None] * prof_p
-            prof_m += gsum[:, None] * prof_m_p
-            prof_w += gsum[:, None] * wbin[None, :]
-    if not any_data:
-        raise NoDataError(f"no visibilities left after the uv cuts (uvmin={uvmin}, uvmax={uvmax}) "
-                          "or all data flagged")
-
-    extra: dict[str, Any] = {"weighting": weighting, "uvmin": None if uvmin is None else str(uvmin),
-                             "uvmax": None if uvmax is None else str(uvmax),
-                             "n_pointings": len(pointings), "seed": int(seed)}
-    if min_sep is not None:
-        extra["min_separation_arcsec"] = float(min_sep / ARCSEC)
-        extra["region"] = extra_region
-    if method in ("mc", "random"):
-        extra["engine"] = ("mixed" if all(engine_blocks.values()) else
-                           "antenna" if engine_blocks["antenna"] else "numba")
-        extra["engine_blocks"] = dict(engine_blocks)
-        extra.update(engine_info)
-    # ---- results -------------------------------------------------------------------------
-    if method in ("analytic", "bootstrap"):
-        target_flux = _combine_targets(X_t, inside_t, wtot_p, wk_t, np.ones(n_t))
-        if method == "analytic":
-            noise, extra_a = _analytic_noise(var_t, inside_t, wtot_p, wk_t)
-            n_used = int(extra_a.pop("_n_used"))
-            extra.update(extra_a)
-            # the same estimator's noise with the variance measured from the visibilities
-            # (not trusting WEIGHT as 1/sigma^2), as xstack.uvstack's flux_err_empirical_jy
-            emp, _ = _analytic_noise(var_emp_t, inside_t, wtot_p, wk_t)
-            extra["noise_empirical_jy"] = emp
-            if np.isfinite(emp) and noise > 0 and abs(emp / noise - 1.0) > EMPIRICAL_TOLERANCE:
-                warnings.warn(
-                    f"analytic noise from WEIGHT ({noise:.3g} Jy) and from the visibilities' "
-                    f"own scatter ({emp:.3g} Jy) differ by a factor {emp / noise:.3g}: the "
-                    "weights are not 1/sigma^2 of the data; trust noise_empirical_jy (or a "
-                    "random/mc estimate)", stacklevel=2)
-            return NoiseResult(method="analytic", noise_jy=noise, bias_jy=None, realizations=0,
-                               target_flux_jy=target_flux, n_positions=n_used, extra=extra)
+        edges = np.linspace(0.0, _max_q_lambda(inputs.pointings) * (1 + 1e-9), nbins + 1)
+    counts = None
+    if options.method == "bootstrap":
         # resample the targets that enter the stack (inside some pointing), as many as there
         # are: the same positions, and the same count, as every other method and uvstack use
-        idx_in = np.flatnonzero(inside_any)
-        n_in = idx_in.size
+        idx_in = np.flatnonzero(inputs.inside_any)
+        n_in, n_t = idx_in.size, inputs.ra.size
         counts = np.stack([np.bincount(idx_in[rng.integers(0, n_in, n_in)], minlength=n_t)
-                           for _ in range(realizations)])
-        vals = np.array([_combine_targets(X_t, inside_t, wtot_p, wk_t, c) for c in counts])
-        return NoiseResult(method="bootstrap", noise_jy=float(np.std(vals, ddof=1)),
-                           bias_jy=float(np.mean(vals) - target_flux), realizations=realizations,
-                           values=vals, target_flux_jy=target_flux, n_positions=n_in,
-                           extra=extra)
+                           for _ in range(options.realizations)])
+    return _Plan(groups_ra=groups[0], groups_dec=groups[1], groups_w=groups[2],
+                 groups_s=groups[3], n_real=n_real, min_sep=min_sep, region=region,
+                 need_flux_for_mc=need_flux, nbins=nbins, edges=edges, counts=counts)
 
+
+def _random_groups(inputs: _Inputs, options: NoiseOptions, rng: np.random.Generator,
+                   groups: tuple[list, list, list, list]) -> tuple[float, Any]:
+    """Append the R random position groups (mc, random) to ``groups``; return the minimum
+    separation (radians) and the region's description."""
+    pointings, ra_t, dec_t, inside_any = inputs.pointings, inputs.ra, inputs.dec, inputs.inside_any
+    if options.min_separation_arcsec is None:
+        qmax = _max_q_lambda(pointings)
+        min_sep = 3.0 / qmax if qmax > 0 else 0.0
+    else:
+        min_sep = float(options.min_separation_arcsec) * ARCSEC
+    av_ra, av_dec = [ra_t], [dec_t]
+    if options.avoid is not None:
+        a_ra, a_dec, _ = _positions_from(options.avoid)
+        av_ra.append(a_ra)
+        av_dec.append(a_dec)
+    # where random positions go: the targets' footprint (default), the whole beam, a
+    # polygon or a mask; always inside some pointing's disc (beam cutoff / field radius)
+    reg = make_region(options.region, ra_t[inside_any], dec_t[inside_any], min_margin=min_sep)
+    field_radius = options.field_radius_arcsec
+    centers = np.array([pt.center for pt in pointings])
+    radii = np.array([
+        np.pi if (field_radius is None and pt.beam.model == "none"
+                  and reg.proposal is not None)  # no beam edge: the region alone
+        else pt.radius(None if field_radius is None else field_radius * ARCSEC)
+        for pt in pointings])
+    uniq, idx = np.unique(np.round(centers, 12), axis=0, return_index=True)
+    region = reg.describe(centers[idx], radii[idx])
+    n_fake = int(inside_any.sum())
+    r_ra, r_dec = random_positions(n_fake, options.realizations, centers[idx], radii[idx],
+                                   avoid_ra=np.concatenate(av_ra),
+                                   avoid_dec=np.concatenate(av_dec), min_separation=min_sep,
+                                   rng=rng, region=reg)
+    s_fake = np.zeros(n_fake)
+    if options.method == "mc":
+        s_fake = _injected_fluxes(options.flux, inputs.cat, inside_any, n_fake)
+        if s_fake is None:  # unit flux now, scaled by the measured target flux later
+            s_fake = np.ones(n_fake)
+    w_fake = inputs.w[inside_any]
+    for r in range(options.realizations):
+        perm = rng.permutation(n_fake)
+        for g, v in zip(groups, (r_ra[r], r_dec[r], w_fake[perm], s_fake[perm])):
+            g.append(v)
+    return min_sep, region
+
+
+def _compute(inputs: _Inputs, plan: _Plan, options: NoiseOptions) -> _Measured:
+    """The one pass over the data of every pointing: the sums of every group at once."""
+    measured = _Measured.zeros(plan.sizes.size, plan.nbins, len(inputs.pointings),
+                               inputs.ra.size)
+    for ip, pt in enumerate(inputs.pointings):
+        _pointing_pass(ip, pt, plan, options, measured)
+    if not measured.any_data:
+        raise NoDataError(f"no visibilities left after the uv cuts (uvmin={options.uvmin}, "
+                          f"uvmax={options.uvmax}) or all data flagged")
+    return measured
+
+
+def _pointing_pass(ip: int, pt: _Pointing, plan: _Plan, options: NoiseOptions,
+                   acc: _Measured) -> None:
+    """Add the sums of pointing ``ip`` (every block of its data) to ``acc``."""
+    from xstack._progress import progress_iter
+
+    method, nbins, edges, starts, sizes = (options.method, plan.nbins, plan.edges, plan.starts,
+                                           plan.sizes)
+    G = sizes.size
+    A = pt.attenuation(plan.all_ra, plan.all_dec)                     # (nchan, K)
+    inside = pt.inside(plan.all_ra, plan.all_dec)
+    l, m, _, n1 = radec_to_lmn(plan.all_ra, plan.all_dec, *pt.center)
+    wk = plan.all_w.copy()
+    if options.weighting == "pb":
+        wk = np.asarray(pt.beam(angular_separation(plan.all_ra, plan.all_dec, *pt.center),
+                                pt.fmid)) ** 2
+    wk = np.where(inside, wk, 0.0)
+    gsum = np.add.reduceat(wk, starts[:-1]) if G else np.zeros(0)
+    gsum = np.where(sizes > 0, gsum, 0.0)
+    norm = np.repeat(np.where(gsum > 0, gsum, 1.0), sizes)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_a = np.where(inside[None, :] & (A > 0), 1.0 / A, 0.0)
+    coef = inv_a * (wk / norm)[None, :]                  # (nchan, K)
+    b = plan.all_s[None, :] * A if method == "mc" else None
+    tsl = slice(starts[-2], starts[-1])
+    acc.inside_t[ip] = inside[tsl]
+    wchan = np.zeros(pt.freq.size)
+    wvchan = np.zeros(pt.freq.size)
+    wbin = np.zeros(max(nbins, 0))
+    acc.wk_t[ip] = wk[tsl]
+    num_p, num_m_p = np.zeros(G), np.zeros(G)
+    prof_p, prof_m_p = np.zeros_like(acc.prof), np.zeros_like(acc.prof)
+    lo, hi = options.uv_range
+    blocks = progress_iter(_blocks(pt, lo, hi, empirical=method == "analytic"),
+                           f"noise {pt.name}", enabled=options.progress)
+    for uvw, vis_w, wsum, wvar in blocks:
+        if not np.any(wsum > 0):
+            continue
+        acc.any_data = True
+        wchan += wsum.sum(axis=0)
+        if wvar is not None:
+            wvchan += wvar.sum(axis=0)
+        if method in ("analytic", "bootstrap"):
+            acc.X_t[ip] += kernels.position_sums(uvw, pt.freq, vis_w, wsum, l[tsl], m[tsl],
+                                                 n1[tsl], inv_a[:, tsl])
+            continue
+        bins = None
+        if nbins:
+            q = (np.hypot(uvw[:, 0], uvw[:, 1])[:, None] * pt.freq[None, :] / SPEED_OF_LIGHT)
+            bins = np.clip(np.searchsorted(edges, q, side="right") - 1, 0, nbins - 1)
+            bins = np.where(wsum > 0, bins, -1)
+            wbin += np.bincount(bins[bins >= 0], wsum[bins >= 0], nbins)
+        d, mdl, pr, prm = _group_sums(pt, uvw, vis_w, wsum, l, m, n1, coef, b, starts,
+                                      bins, nbins, options.engine, options.antenna_tol_rad,
+                                      acc.engine_blocks, acc.engine_info)
+        num_p += d
+        num_m_p += mdl
+        prof_p += pr
+        prof_m_p += prm
+    # pointings combine as in xstack.uvstack: each weighted by its sum of w_k
+    wtot = float(wchan.sum())
+    acc.wtot_p[ip] = wtot
+    acc.num += gsum * num_p
+    acc.num_m += gsum * num_m_p
+    acc.den += gsum * wtot
+    acc.var_t[ip] = (wchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
+    acc.var_emp_t[ip] = (wvchan[:, None] * inv_a[:, tsl] ** 2).sum(axis=0)
+    if b is not None:
+        acc.expect += gsum * np.add.reduceat((wchan[:, None] * coef * b).sum(axis=0),
+                                             starts[:-1]) * (sizes > 0)
+    if nbins:
+        acc.prof += gsum[:, None] * prof_p
+        acc.prof_m += gsum[:, None] * prof_m_p
+        acc.prof_w += gsum[:, None] * wbin[None, :]
+
+
+def _assemble(inputs: _Inputs, plan: _Plan, measured: _Measured,
+              options: NoiseOptions) -> NoiseResult:
+    """The result: noise, bias, values and the JSON extras from the pass's sums."""
+    extra: dict[str, Any] = {"weighting": options.weighting,
+                             "uvmin": None if options.uvmin is None else str(options.uvmin),
+                             "uvmax": None if options.uvmax is None else str(options.uvmax),
+                             "n_pointings": len(inputs.pointings), "seed": options.seed}
+    used = options.to_dict()  # the options, completed with what the run decided
+    if plan.min_sep is not None:
+        extra["min_separation_arcsec"] = used["min_separation_arcsec"] = float(plan.min_sep / ARCSEC)
+        extra["region"] = plan.region
+    if options.method in ("mc", "random"):
+        blocks = measured.engine_blocks
+        extra["engine"] = used["engine"] = ("mixed" if all(blocks.values()) else
+                                            "antenna" if blocks["antenna"] else "numba")
+        extra["engine_blocks"] = dict(blocks)
+        extra.update(measured.engine_info)
+    if options.method in ("analytic", "bootstrap"):
+        return _assemble_targets(inputs, plan, measured, options, extra, used)
+    return _assemble_realizations(plan, measured, options, extra, used)
+
+
+def _assemble_targets(inputs: _Inputs, plan: _Plan, acc: _Measured, options: NoiseOptions,
+                      extra: dict[str, Any], used: dict[str, Any]) -> NoiseResult:
+    """analytic and bootstrap: from the per-target sums."""
+    args = (acc.X_t, acc.inside_t, acc.wtot_p, acc.wk_t)
+    target_flux = _combine_targets(*args, np.ones(inputs.ra.size))
+    if options.method == "bootstrap":
+        vals = np.array([_combine_targets(*args, c) for c in plan.counts])
+        return NoiseResult(method="bootstrap", noise_jy=float(np.std(vals, ddof=1)),
+                           bias_jy=float(np.mean(vals) - target_flux),
+                           realizations=options.realizations, values=vals,
+                           target_flux_jy=target_flux, n_positions=int(inputs.inside_any.sum()),
+                           extra=extra, options=used)
+    noise, extra_a, n_used = _analytic_noise(acc.var_t, acc.inside_t, acc.wtot_p, acc.wk_t)
+    extra.update(extra_a)
+    # the same estimator's noise with the variance measured from the visibilities
+    # (not trusting WEIGHT as 1/sigma^2), as xstack.uvstack's flux_err_empirical_jy
+    emp, _, _ = _analytic_noise(acc.var_emp_t, acc.inside_t, acc.wtot_p, acc.wk_t)
+    extra["noise_empirical_jy"] = emp
+    if np.isfinite(emp) and noise > 0 and abs(emp / noise - 1.0) > EMPIRICAL_TOLERANCE:
+        warnings.warn(
+            f"analytic noise from WEIGHT ({noise:.3g} Jy) and from the visibilities' "
+            f"own scatter ({emp:.3g} Jy) differ by a factor {emp / noise:.3g}: the "
+            "weights are not 1/sigma^2 of the data; trust noise_empirical_jy (or a "
+            "random/mc estimate)", stacklevel=4)  # the caller of estimate_noise
+    return NoiseResult(method="analytic", noise_jy=noise, bias_jy=None, realizations=0,
+                       target_flux_jy=target_flux, n_positions=n_used, extra=extra,
+                       options=used)
+
+
+def _assemble_realizations(plan: _Plan, acc: _Measured, options: NoiseOptions,
+                           extra: dict[str, Any], used: dict[str, Any]) -> NoiseResult:
+    """mc and random: from the per-group sums (the targets are the last group)."""
+    n_real, num, den = plan.n_real, acc.num, acc.den
     dens = np.where(den > 0, den, np.nan)
     target_flux = float(num[-1] / dens[-1])
     scale = 1.0
-    if need_flux_for_mc:
+    if plan.need_flux_for_mc:
         # fluxes were injected at 1 Jy; everything injected is linear in the flux
         scale = max(target_flux, 0.0)
         extra["injected_flux_jy"] = scale
-    flux_vals = (num + scale * num_m) / dens
-    expect = expect * scale
-    prof = prof + scale * prof_m
+    flux_vals = (num + scale * acc.num_m) / dens
+    expect = acc.expect * scale
+    prof = acc.prof + scale * acc.prof_m
     vals = flux_vals[:n_real]
     profile = None
-    if nbins:
+    if plan.nbins:
+        edges = plan.edges
         with np.errstate(invalid="ignore", divide="ignore"):
-            pv = prof / prof_w
+            pv = prof / acc.prof_w
         profile = {"q_klambda": (0.5 * (edges[1:] + edges[:-1]) / 1e3).tolist(),
                    "edges_klambda": (edges / 1e3).tolist(),
-                   "values": pv[:n_real], "target": pv[-1], "weight": prof_w[0]}
-    pos = np.degrees(np.stack([np.stack(groups_ra[:n_real]), np.stack(groups_dec[:n_real])], -1))
-    if method == "random":
+                   "values": pv[:n_real], "target": pv[-1], "weight": acc.prof_w[0]}
+    pos = np.degrees(np.stack([np.stack(plan.groups_ra[:n_real]),
+                               np.stack(plan.groups_dec[:n_real])], -1))
+    common = dict(realizations=n_real, values=vals, target_flux_jy=target_flux,
+                  n_positions=int(plan.sizes[0]), profile=profile, extra=extra,
+                  positions_deg=pos, options=used)
+    if options.method == "random":
         return NoiseResult(method="random", noise_jy=float(np.std(vals, ddof=1)),
-                           bias_jy=float(np.mean(vals)), realizations=n_real, values=vals,
-                           target_flux_jy=target_flux, n_positions=int(sizes[0]),
-                           profile=profile, extra=extra, positions_deg=pos)
+                           bias_jy=float(np.mean(vals)), **common)
     injected = expect[:n_real] / np.where(den[:n_real] > 0, den[:n_real], np.nan)
-    if need_flux_for_mc:
+    if plan.need_flux_for_mc:
         extra["injected_flux_from"] = "stacked target flux"
     if profile is not None:
         profile["injected"] = injected
     return NoiseResult(method="mc", noise_jy=float(np.std(vals, ddof=1)),
-                       bias_jy=float(np.mean(vals - injected)), realizations=n_real,
-                       values=vals, injected=injected, target_flux_jy=target_flux,
-                       n_positions=int(sizes[0]), profile=profile, extra=extra, positions_deg=pos,
-                       injected_flux_jy=scale * np.stack(groups_s[:n_real]))
+                       bias_jy=float(np.mean(vals - injected)), injected=injected,
+                       injected_flux_jy=scale * np.stack(plan.groups_s[:n_real]), **common)
 
 
 def _analytic_noise(var: np.ndarray, inside: np.ndarray, wtot: np.ndarray, w: np.ndarray
-                    ) -> tuple[float, dict[str, Any]]:
-    """Noise of the estimator actually used, and that of optimal weights (eq. 6).
+                    ) -> tuple[float, dict[str, Any], int]:
+    """Noise of the estimator actually used, the extras (that of optimal weights, eq. 6),
+    and the number of positions used.
 
     ``var[p, k]`` = Var(X_pk) = sum_vis W / A_pk^2 (W = 1 / sigma^2 of a real part),
     ``w[p, k]`` the position weights, ``wtot[p]`` = sum_vis W of pointing p. The stacked flux
@@ -594,9 +833,8 @@ def _analytic_noise(var: np.ndarray, inside: np.ndarray, wtot: np.ndarray, w: np
     sig2 = np.full(w.shape[1], np.inf)
     sig2[ok] = (wi**2 * var).sum(axis=0)[ok] / wsum_in[ok] ** 2
     extra = {"optimal_noise_jy": float(1.0 / np.sqrt(np.sum(1.0 / sig2[ok]))),
-             "sigma_k_median_jy": float(np.median(np.sqrt(sig2[ok]))),
-             "_n_used": int(ok.sum())}
-    return noise, extra
+             "sigma_k_median_jy": float(np.median(np.sqrt(sig2[ok])))}
+    return noise, extra, int(ok.sum())
 
 
 def _group_sums(pt: _Pointing, uvw, vis_w, wsum, l, m, n1, coef, b, starts, bins, nbins,

@@ -31,7 +31,14 @@ from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions, grouped_partitions
 from xstack._result import Result
 from xstack._scatter import EMPIRICAL_TOLERANCE
-from xstack._select import parallel_hand_mask, sky_correlations, uv_limits, uv_range_mask
+from xstack._select import (
+    UVLimit,
+    parallel_hand_mask,
+    parse_uv_limit,
+    sky_correlations,
+    uv_limits,
+    uv_range_mask,
+)
 from xstack.beams import DEFAULT_PB_CUTOFF, dish_diameter, inside_field, standard_beam
 from xstack.coords import (
     angular_separation,
@@ -61,7 +68,7 @@ _EMPIRICAL_SUMS = True
 
 @dataclass(kw_only=True)
 class StackResult(Result):
-    """The result of :func:`uvstack`.
+    """The result of :func:`stack_uv`.
 
     Attributes
     ----------
@@ -137,6 +144,158 @@ class StackResult(Result):
         """One row per catalog position: the catalog with ``used``, ``weight_used``,
         ``attenuation``, ``smearing_loss`` (one column per partition) and ``n_pointings``."""
         return Table(self.positions, copy=True)
+
+
+# --- options ------------------------------------------------------------------------------
+
+#: Model primary beams by name (:func:`xstack.beams.standard_beam`); anything else must be a
+#: FITS image path
+_BEAM_MODELS = ("auto", "airy", "gaussian", "none")
+_FITS_SUFFIXES = (".fits", ".fit", ".fits.gz")
+
+
+def _is_fits_path(primary_beam: Any) -> bool:
+    return isinstance(primary_beam, (str, os.PathLike)) and \
+        str(primary_beam).lower().endswith(_FITS_SUFFIXES)
+
+
+def _option_error(name: str, message: str) -> OptionError:
+    return OptionError(message, option=name)
+
+
+@dataclass(frozen=True, kw_only=True)
+class UvstackOptions:
+    """Every option of :func:`stack_uv`, validated when constructed (before any data is read).
+
+    The fields, their defaults and their meaning are the keyword arguments of
+    :func:`stack_uv`. A bad value raises :class:`~xstack.errors.OptionError` (a
+    :class:`ValueError`) naming the parameter, also in its ``option`` attribute.
+    ``polarizations`` is kept as ``"parallel"``, ``"all"`` or a tuple of correlation names
+    (a string other than the first two is a comma-separated list; None is ``"parallel"``).
+
+    Attributes
+    ----------
+    uv_lo, uv_hi
+        Derived: ``uvmin`` and ``uvmax`` parsed to ``(value, "m" | "lambda")`` (metres or
+        wavelengths, :func:`xstack._select.parse_uv_limit`), or None for no limit.
+    """
+
+    weighting: str = "pb"
+    primary_beam: Any = "auto"
+    pb_cutoff: float = DEFAULT_PB_CUTOFF
+    uvmin: Any = None
+    uvmax: Any = None
+    # arrays: not compared (their == is elementwise)
+    sigma: Any = field(default=None, compare=False)
+    noise_image: Any = field(default=None, compare=False)
+    polarizations: Any = "parallel"
+    engine: str = "auto"
+    out: str | os.PathLike | None = None
+    overwrite: bool = False
+    progress: bool = False
+    antenna_tol_rad: float = ANTENNA_TOL_RAD
+    autocorrelations: bool = False
+    smearing: str = "auto"
+    uv_lo: UVLimit | None = field(init=False, default=None)
+    uv_hi: UVLimit | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        if self.weighting not in WEIGHTINGS:
+            raise _option_error("weighting", f"unknown weighting {self.weighting!r} (use "
+                                f"{', '.join(WEIGHTINGS)})")
+        if self.engine not in ENGINES:
+            raise _option_error("engine", f"unknown engine {self.engine!r} (use "
+                                f"{', '.join(ENGINES)})")
+        if self.smearing not in _smearing.MODES:
+            raise _option_error("smearing", f"unknown smearing {self.smearing!r} (use "
+                                f"{', '.join(_smearing.MODES)})")
+        try:
+            cutoff = float(self.pb_cutoff)
+        except (TypeError, ValueError):
+            cutoff = float("nan")
+        if not 0 <= cutoff < 1:
+            raise _option_error("pb_cutoff", f"pb_cutoff must be in [0, 1), got {self.pb_cutoff}")
+        self._check_primary_beam()
+        self._set_uv_limits()
+        self._check_sigma()
+        self._set_polarizations()
+        try:
+            tol = float(self.antenna_tol_rad)
+        except (TypeError, ValueError):
+            tol = float("nan")
+        if not (np.isfinite(tol) and tol >= 0):
+            raise _option_error("antenna_tol_rad", "antenna_tol_rad must be a finite angle >= 0 "
+                                f"(radians), got {self.antenna_tol_rad!r}")
+
+    def _check_primary_beam(self) -> None:
+        beam = self.primary_beam
+        if not _is_fits_path(beam) and str(beam).lower() not in _BEAM_MODELS:
+            raise _option_error("primary_beam", f"unknown primary beam {beam!r} (primary_beam: "
+                                f"{', '.join(_BEAM_MODELS)} or a FITS file)")
+
+    def _set_uv_limits(self) -> None:
+        for name in ("uvmin", "uvmax"):
+            try:
+                parse_uv_limit(getattr(self, name))
+            except XstackError as exc:
+                raise _option_error(name, f"{name}: {exc}") from None
+        lo, hi = uv_limits(self.uvmin, self.uvmax)
+        # frozen: derived fields are set once, here
+        object.__setattr__(self, "uv_lo", lo)
+        object.__setattr__(self, "uv_hi", hi)
+
+    def _check_sigma(self) -> None:
+        if self.noise_image is not None:
+            if self.weighting != "sigma2":
+                raise _option_error("noise_image", "noise_image is used only with "
+                                    f"weighting='sigma2' (got {self.weighting!r})")
+            if self.sigma is not None:
+                raise _option_error(("sigma", "noise_image"), "give sigma= or noise_image=, "
+                                    "not both")
+        if self.sigma is not None:
+            try:
+                np.asarray(self.sigma, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise _option_error("sigma", "sigma must be one number or one per position "
+                                    "(Jy)") from None
+
+    def _set_polarizations(self) -> None:
+        pols = self.polarizations
+        if pols is None:
+            pols = "parallel"
+        elif isinstance(pols, str) and pols not in ("parallel", "all"):
+            pols = tuple(p.strip() for p in pols.split(",") if p.strip())
+        elif not isinstance(pols, str):
+            try:
+                pols = tuple(str(p) for p in pols)
+            except TypeError:
+                raise _option_error("polarizations", "polarizations must be 'parallel', 'all' "
+                                    f"or a list of correlation names, got {pols!r}") from None
+        if not pols:
+            raise _option_error("polarizations", "polarizations: no correlation name given")
+        object.__setattr__(self, "polarizations", pols)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The options recorded in :attr:`StackResult.options` (JSON-ready, in this order).
+
+        ``sigma``, ``noise_image``, ``out``, ``overwrite``, ``progress`` and
+        ``antenna_tol_rad`` are not recorded (the result records what sigma_k were used);
+        the stacking adds ``smearing_corrected``, ``sigma``, ``stack_center_deg``,
+        ``local_noise`` and ``engine_rows``, and replaces ``engine`` by the engine that ran.
+        """
+        pols = self.polarizations
+        return {
+            "weighting": self.weighting,
+            "primary_beam": (str(Path(self.primary_beam)) if _is_fits_path(self.primary_beam)
+                             else str(self.primary_beam)),
+            "pb_cutoff": float(self.pb_cutoff),
+            "uvmin": None if self.uvmin is None else str(self.uvmin),
+            "uvmax": None if self.uvmax is None else str(self.uvmax),
+            "polarizations": pols if isinstance(pols, str) else list(pols),
+            "autocorrelations": bool(self.autocorrelations),
+            "smearing": self.smearing,
+            "engine": self.engine,
+        }
 
 
 # --- inputs -------------------------------------------------------------------------------
@@ -484,12 +643,188 @@ def _sigma2_pointing_weights(parts, geometries, sigma, polarizations, lo, hi, pr
     return list(w / peak) if peak > 0 else list(w)
 
 
-def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, cutoff,
-                    polarizations, smearing=("none", None, None),
-                    position_weight=None, geometry=None) -> _Plan:
+# --- phase 1: inputs ----------------------------------------------------------------------
+
+@dataclass
+class _Inputs:
+    """Normalised inputs of one stack: nothing of the visibilities is read yet."""
+
+    table: Table  # the catalog
+    ra: np.ndarray  # (npos,) radians
+    dec: np.ndarray  # (npos,) radians
+    sigma: np.ndarray | None  # (npos,) sigma_k for weighting="sigma2" (inf: no estimate)
+    noise: Any  # the local-noise measurement (xstack.uvstack.localnoise) or None
+    col_weight: np.ndarray | None  # (npos,) the catalog's weight column for "column"
+    beam: Any  # a FitsBeam or a model beam's name
+    parts: list[tuple[str, xr.Dataset]]  # (unique name, lazy partition) to stack
+
+
+def _load(data: Any, positions: Any, options: UvstackOptions) -> _Inputs:
+    """Read the catalog, the per-position sigma/weights and a FITS beam; open the data lazily.
+
+    Checks ``out`` before the data are opened. No visibility is read.
+    """
+    from xstack._atomic import check_output
+
+    table = _positions_table(positions)
+    ra = np.radians(np.asarray(table["ra"], dtype=np.float64))
+    dec = np.radians(np.asarray(table["dec"], dtype=np.float64))
+    sig, noise = _position_sigma(table, options)
+    col_weight = None
+    if options.weighting == "column":
+        if "weight" not in table.colnames:
+            raise XstackError("weighting='column' needs a 'weight' column in the catalog")
+        col_weight = np.asarray(table["weight"], dtype=np.float64)
+    beam = FitsBeam(options.primary_beam) if _is_fits_path(options.primary_beam) \
+        else options.primary_beam
+    if options.out is not None:
+        check_output(options.out, options.overwrite)
+    datasets = _load_datasets(data)
+    multi = len(datasets) > 1
+    parts = [(f"{name}_ds{i}" if multi else name, sky_correlations(ds, options.autocorrelations))
+             for i, (_label, group) in enumerate(datasets) for name, ds in group]
+    return _Inputs(table, ra, dec, sig, noise, col_weight, beam, parts)
+
+
+def _position_sigma(table: Table, options: UvstackOptions) -> tuple[np.ndarray | None, Any]:
+    """sigma_k (Jy, one per catalog row) of ``weighting="sigma2"`` and the local-noise
+    measurement they came from: ``sigma=``, else measured in ``noise_image``, else the
+    catalog's ``sigma`` column; (None, None) for the analytic sigma_k or another weighting."""
+    npos = len(table)
+    sig = None
+    noise = None
+    if options.weighting != "sigma2":
+        return None, None
+    if options.sigma is not None:
+        try:
+            sig = np.broadcast_to(np.asarray(options.sigma, dtype=np.float64), (npos,)).copy()
+        except (TypeError, ValueError):
+            raise OptionError(f"sigma must be one number or one per position ({npos})",
+                              option="sigma") from None
+    elif options.noise_image is not None:
+        from xstack.uvstack.localnoise import measure_local_noise
+
+        # stacklevel 4: the caller of stack_uv (stack_uv -> _load -> here)
+        if "sigma" in table.colnames:
+            warnings.warn(XstackWarning("the catalog's sigma column is ignored: sigma_k "
+                                        "are measured in noise_image",
+                                        option="noise_image"), stacklevel=4)
+        noise = measure_local_noise(options.noise_image, table)
+        # rows without an estimate get weight 0 here; a used one is an error in _plan
+        sig = np.where(np.isfinite(noise.sigma), noise.sigma, np.inf)
+        if noise.pbcor is False and noise.beam is None and \
+                str(options.primary_beam).lower() != "none":
+            warnings.warn(f"noise image {noise.name} is not primary-beam corrected "
+                          "(XSPBCOR = F) and names no primary beam (XSPBFILE): its sigma_k "
+                          "miss the 1/A_k rise of the noise of the corrected flux; give "
+                          "the residual of xstack image (it carries OUT.pb.fits) or a "
+                          "corrected image", stacklevel=4)
+    elif "sigma" in table.colnames:
+        sig = np.asarray(table["sigma"], dtype=np.float64)
+    if noise is None and sig is not None and not np.all(np.isfinite(sig) & (sig > 0)):
+        bad = int(np.argmax(~(np.isfinite(sig) & (sig > 0))))
+        raise XstackError(f"positions row {bad + 1}: sigma must be positive and finite")
+    return sig, noise
+
+
+# --- phase 2: plan ------------------------------------------------------------------------
+
+@dataclass
+class _StackPlan:
+    """What enters the stack: per-partition plans, the stack's phase center, the options
+    record of the result (JSON; ``engine`` and ``engine_rows`` set by the flux pass)."""
+
+    inputs: _Inputs
+    partitions: list[_Plan]  # every partition, in input order
+    active: list[_Plan]  # those with a positive total position weight
+    covered: np.ndarray  # (npos,) bool: inside some pointing
+    used: np.ndarray  # (npos,) bool: with a positive weight in some active pointing
+    center: tuple[float, float]  # radians
+    record: dict[str, Any]
+
+
+def _plan(inputs: _Inputs, options: UvstackOptions) -> _StackPlan:
+    """Positions per pointing, their weights and coefficients, the stack center.
+
+    Reads no visibility; ``sigma2`` on several pointings sums each pointing's WEIGHT and
+    the smearing correction subsamples UVW/WEIGHT/FLAG rows (both small passes).
+    """
+    ra, dec, npos = inputs.ra, inputs.dec, len(inputs.table)
+    parts = inputs.parts
+    # each pointing's view of the positions, computed once (sigma2 weights and plans use it)
+    geometries = [_geometry(ds, ra, dec, inputs.beam, float(options.pb_cutoff))
+                  for _, ds in parts]
+    position_weights: list[Any] = [None] * len(parts)
+    if options.weighting == "sigma2" and inputs.sigma is not None and len(parts) > 1:
+        position_weights = _sigma2_pointing_weights(
+            parts, geometries, inputs.sigma, options.polarizations, options.uv_lo,
+            options.uv_hi, options.progress)
+    plans = [_plan_partition(pname, ds, inputs, options, pw, geo)
+             for (pname, ds), pw, geo in zip(parts, position_weights, geometries)]
+    covered = np.zeros(npos, dtype=bool)
+    for p in plans:
+        covered |= p.used
+    if not covered.any():
+        raise NoDataError(f"none of the {npos} positions lies inside a pointing "
+                          f"(primary-beam cutoff {options.pb_cutoff})")
+    if inputs.noise is not None:
+        missing = np.flatnonzero(covered & ~np.isfinite(inputs.noise.sigma))
+        if missing.size:
+            raise XstackError(inputs.noise.describe_bad(missing))
+    n_uncovered = int(np.count_nonzero(~covered))
+    if n_uncovered:
+        # stacklevel 3: the caller of stack_uv
+        warnings.warn(f"{n_uncovered} of {npos} positions lie in no pointing and are not "
+                      "stacked (see StackResult.uncovered)", stacklevel=3)
+    active = [p for p in plans if p.sum_weight > 0]
+    if not active:
+        raise NoDataError("all position weights are zero: nothing to stack")
+    used = np.zeros(npos, dtype=bool)
+    for p in active:
+        used |= p.used & (p.weight > 0)
+    # the stacked dataset's phase center: the positions' mean direction (the first position
+    # if they cancel)
+    center = mean_direction(ra[used], dec[used]) or (float(ra[used][0]), float(dec[used][0]))
+    worst = max(float(p.smearing_loss.max(initial=0.0)) for p in active)
+    if worst > _smearing.WARN_LOSS:
+        warnings.warn(XstackWarning(f"smearing costs up to {100 * worst:.0f}% of a position's "
+                                    "flux (corrected to first order; smearing='none' to leave "
+                                    "it)", option="smearing"), stacklevel=3)
+    record = _options_record(options, inputs, active, center)
+    return _StackPlan(inputs, plans, active, covered, used, center, record)
+
+
+def _options_record(options: UvstackOptions, inputs: _Inputs, active: list[_Plan],
+                    center: tuple[float, float]) -> dict[str, Any]:
+    """The result's ``options``: :meth:`UvstackOptions.to_dict` with what the plan found
+    (smearing corrected, where sigma_k came from, the stack center), in the documented order."""
+    given = options.to_dict()
+    record = {k: v for k, v in given.items() if k != "engine"}
+    record["smearing_corrected"] = [e for i, e in enumerate(("bandwidth", "time"))
+                                    if any(p.smearing_effects[i] for p in active)]
+    record["engine"] = given["engine"]
+    noise, sig = inputs.noise, inputs.sigma
+    record["sigma"] = (f"local-noise:{noise.name}" if noise is not None else "given"
+                       if sig is not None else "analytic" if options.weighting == "sigma2"
+                       else None)
+    record["stack_center_deg"] = [float(np.degrees(center[0])), float(np.degrees(center[1]))]
+    if noise is not None:
+        record["local_noise"] = noise.provenance()
+    return record
+
+
+def _plan_partition(name: str, ds: xr.Dataset, inputs: _Inputs, options: UvstackOptions,
+                    position_weight: np.ndarray | None = None, geometry: Any = None) -> _Plan:
+    """One partition's plan: position weights W_k (0 outside the pointing), their total, and
+    the phasor parameters [l, m, n - 1, W_k / (A_k(nu) L_k(nu) sum W)] of the used positions.
+
+    ``position_weight``: per-pointing weights of ``sigma2`` on a mosaic (else from
+    ``options.weighting``); ``geometry``: :func:`_geometry` of the partition if known.
+    """
+    ra, weighting, sigma = inputs.ra, options.weighting, inputs.sigma
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-    l, m, n1, att, att_ref, used = (geometry if geometry is not None
-                                    else _geometry(ds, ra, dec, beam_spec, cutoff))
+    l, m, n1, att, att_ref, used = (geometry if geometry is not None else _geometry(
+        ds, ra, inputs.dec, inputs.beam, float(options.pb_cutoff)))
     if position_weight is not None:
         w = position_weight
     elif weighting == "none":
@@ -499,25 +834,25 @@ def _plan_partition(name, ds, ra, dec, sigma, col_weight, weighting, beam_spec, 
     elif weighting == "sigma2":
         w = 1.0 / sigma**2 if sigma is not None else att_ref**2
     else:
-        w = col_weight
+        w = inputs.col_weight
     w = np.where(used, w, 0.0)
     total = float(w.sum())
     sel = used & (w > 0)
+    pol_mask = _pol_mask(ds, options.polarizations, name)
     smear_loss, effects = np.zeros(ra.size), (False, False)
     if total > 0:
         # smearing loss L_k(nu), corrected as the primary beam is (xstack.uvstack.smearing)
-        effects = _smearing.data_effects(ds, smearing[0])
+        effects = _smearing.data_effects(ds, options.smearing)
         L, L_ref = _smearing.loss_factors(
             ds, l[sel], m[sel], n1[sel], bandwidth=effects[0], time=effects[1],
-            pol_mask=_pol_mask(ds, polarizations, name),
-            uv_select=lambda x, f: uv_range_mask(x, f, smearing[1], smearing[2]))
+            pol_mask=pol_mask,
+            uv_select=lambda x, f: uv_range_mask(x, f, options.uv_lo, options.uv_hi))
         smear_loss[sel] = 1.0 - L_ref
         coef = w[sel, None] / (att[sel] * L) / total
         params = np.column_stack([l[sel], m[sel], n1[sel], coef])
     else:
         params = np.zeros((0, 3 + freq.size))
-    return _Plan(name, ds, used, w, att_ref, total, params,
-                 _pol_mask(ds, polarizations, name), smear_loss, effects)
+    return _Plan(name, ds, used, w, att_ref, total, params, pol_mask, smear_loss, effects)
 
 
 def _as_dask(ds: xr.Dataset) -> xr.Dataset:
@@ -545,7 +880,9 @@ def _as_dask(ds: xr.Dataset) -> xr.Dataset:
     return ds.assign(updates) if updates else ds
 
 
-def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
+# --- phase 3: compute ---------------------------------------------------------------------
+
+def _stacked_dataset(plan: _Plan, options: UvstackOptions, stack_center, record, ra, dec,
                      shared_phasor: bool = False) -> tuple[xr.Dataset, Any]:
     """The lazy stacked partition and the lazy flux sums of ``plan``.
 
@@ -553,8 +890,10 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
     when the stack is written) the sums use that phasor too, so a write plus the flux costs
     one phasor evaluation instead of two; otherwise the sums evaluate the phasor in small row
     steps themselves, only for rows that carry weight (less memory for a flux alone).
+    ``record``: the options record, copied into the partition's ``uvstack_options``.
     """
     ds = _as_dask(plan.ds)
+    engine = options.engine
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
     vis = ds["VISIBILITY"].data
     uvw = ds["UVW"].data
@@ -566,10 +905,10 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
         ants = [da.from_array(np.asarray(ds[f"baseline_antenna{i}_id"].values), chunks=bchunks,
                               name=False) if j == 0 else "b" for i in (1, 2) for j in (0, 1)]
     nsums = _NSUMS + len(_ROW_ENGINES)
-    tol = options["_antenna_tol_rad"]
+    tol = float(options.antenna_tol_rad)
     sum_kwargs = dict(dtype=np.float64, concatenate=True, new_axes={"s": nsums},
                       adjust_chunks={"t": 1, "b": 1}, frequency=freq, pol_mask=plan.pol_mask,
-                      lo=options["_lo"], hi=options["_hi"])
+                      lo=options.uv_lo, hi=options.uv_hi)
     # "e": the channels plus the engine column (one chunk). Computed only when the stacked
     # visibilities are (a written store, or the caller's own compute)
     ph = da.blockwise(_block_phasor_chunk, "tbe", uvw, "tbx", params, "kz", *ants,
@@ -604,10 +943,141 @@ def _stacked_dataset(plan: _Plan, engine: str, stack_center, options, ra, dec,
         "original_phase_center": [float(x) for x in plan.ds.attrs["phase_center"]],
         "uvstack_sum_weight": float(plan.sum_weight),
         "uvstack_n_positions": int(idx.size),
-        "uvstack_options": {k: v for k, v in options.items() if not k.startswith("_")},
+        # a copy: the record's engine is the requested one until the flux pass has run
+        "uvstack_options": dict(record),
         "data_kind": "stacked",
     })
     return out, sums
+
+
+@dataclass
+class _Measured:
+    """What the flux pass measured (:func:`_measure`) and the lazy stacked partitions."""
+
+    stacked: dict[str, xr.Dataset]
+    sums: list[np.ndarray]  # per active partition: the flux sums, then rows per engine
+    flux_jy: float
+    flux_err_jy: float
+    flux_err_empirical_jy: float
+    weight_scale: float
+    noise_estimate: dict[str, Any]
+    flux_imag_jy: float
+    n_visibilities: int
+
+
+def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
+    """Build the lazy stack and run the one pass over the data: the flux sums, and the
+    written store when ``options.out`` is set (sharing each chunk's phasor)."""
+    from xstack._progress import dask_progress
+
+    stacked: dict[str, xr.Dataset] = {}
+    sums_graph = []
+    for p in plan.active:
+        ds_out, sums = _stacked_dataset(p, options, plan.center, plan.record, plan.inputs.ra,
+                                        plan.inputs.dec, shared_phasor=options.out is not None)
+        stacked[p.name] = ds_out
+        sums_graph.append(sums)
+    done: list[_Measured] = []
+
+    def measure(results: tuple[Any, ...]) -> dict[str, Any]:
+        done.append(_measure(results, plan, options, stacked))
+        m = done[-1]
+        emp = m.flux_err_empirical_jy
+        return {"uvstack": {"flux_jy": m.flux_jy, "flux_err_jy": m.flux_err_jy,
+                            "flux_err_empirical_jy": emp if np.isfinite(emp) else None,
+                            "n_positions": int(np.count_nonzero(plan.used)),
+                            "n_visibilities": m.n_visibilities, "options": plan.record}}
+
+    try:
+        if options.out is None:
+            with dask_progress("uvstack: flux", enabled=options.progress):
+                measure(dask.compute(*sums_graph))
+        else:
+            from xstack.schema import write_store
+
+            # one pass: the flux sums share each chunk's phasor with the written stack
+            write_store(stacked, options.out, kind="stacked", overwrite=options.overwrite,
+                        progress=options.progress, description="uvstack",
+                        compute_with=sums_graph, final_attrs=measure)
+    except MemoryError as exc:
+        if options.engine != "nufft":
+            raise
+        raise XstackError(f"engine 'nufft': {exc}") from None
+    return done[-1]
+
+
+def _measure(results: tuple[Any, ...], plan: _StackPlan, options: UvstackOptions,
+             stacked: dict[str, xr.Dataset]) -> _Measured:
+    """Combine the partitions' flux sums (section 3.3.1); record the engines that ran in
+    ``plan.record``. NoDataError when no visibility entered the flux."""
+    scale = np.array([p.sum_weight for p in plan.active])
+    sums = [np.asarray(r, dtype=np.float64) for r in results]
+    den = sum(s_p * s[1] for s_p, s in zip(scale, sums))
+    nvis = int(round(sum(s[4] for s in sums)))
+    if not den > 0 or nvis == 0:
+        raise NoDataError("no unflagged visibility with positive weight in the selected "
+                          "polarizations and uv range")
+    var_w = sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))
+    # the same variance with the noise measured per block in place of 1/WEIGHT
+    var_e = sum(s_p**2 * s[5] for s_p, s in zip(scale, sums))
+    n_pooled = int(round(sum(s[6] for s in sums)))
+    n_weights = int(round(sum(s[7] for s in sums)))
+    multichan = {int(p.ds.sizes["frequency"]) > 1 for p in plan.active}
+    rows = np.sum([s[_NSUMS:] for s in sums], axis=0)
+    ran = {e: int(r) for e, r in zip(_ROW_ENGINES, rows) if r > 0}
+    plan.record["engine"] = next(iter(ran)) if len(ran) == 1 else "mixed" if ran \
+        else options.engine
+    plan.record["engine_rows"] = ran
+    return _Measured(
+        stacked=stacked, sums=sums, n_visibilities=nvis,
+        flux_jy=float(sum(s_p * s[0] for s_p, s in zip(scale, sums)) / den),
+        flux_err_jy=float(np.sqrt(var_w) / den),
+        flux_err_empirical_jy=float(np.sqrt(var_e) / den),
+        weight_scale=float(var_e / var_w) if var_w > 0 else float("nan"),
+        noise_estimate={
+            "pairs": ("mixed" if len(multichan) > 1 else "channels" if True in multichan
+                      else "integrations"),
+            "own": nvis - n_pooled - n_weights, "pooled": n_pooled, "weights": n_weights},
+        flux_imag_jy=float(sum(s_p * s[3] for s_p, s in zip(scale, sums)) / den))
+
+
+# --- phase 4: assemble --------------------------------------------------------------------
+
+def _assemble(plan: _StackPlan, measured: _Measured, options: UvstackOptions) -> StackResult:
+    """The :class:`StackResult`: the catalog with per-partition columns, and a warning when
+    the weights' and the measured error disagree."""
+    inputs, plans = plan.inputs, plan.partitions
+    pos = Table(inputs.table, copy=True)
+    pos["used"] = np.stack([p.used & (p.weight > 0) for p in plans], axis=1)
+    pos["weight_used"] = np.stack([p.weight for p in plans], axis=1)
+    pos["attenuation"] = np.stack([p.attenuation for p in plans], axis=1)
+    pos["smearing_loss"] = np.stack([p.smearing_loss for p in plans], axis=1)
+    pos["n_pointings"] = pos["used"].sum(axis=1)
+    if inputs.noise is not None:
+        pos["sigma_local"] = inputs.noise.sigma
+    pos.meta["partitions"] = [p.name for p in plans]
+    err_w, err_e = measured.flux_err_jy, measured.flux_err_empirical_jy
+    ratio = err_e / err_w
+    if np.isfinite(ratio) and abs(ratio - 1) > EMPIRICAL_TOLERANCE:
+        warnings.warn(XstackWarning(
+            f"uv-stack flux error from WEIGHT ({err_w:.3g} Jy) and from the "
+            f"visibility scatter ({err_e:.3g} Jy) differ by "
+            f"{ratio:.3g}x: the weights are mis-scaled"
+            + ("" if ratio < 1 else ", or sky signal changes across channels (bright sources "
+               "far from the phase center: subtract them first)")
+            + "; choose the error printed first with errors='weights' (flux_err_jy) or "
+            "errors='empirical' (flux_err_empirical_jy)",
+            option="errors"),
+            stacklevel=3)
+    return StackResult(stacked=measured.stacked, flux_jy=measured.flux_jy, flux_err_jy=err_w,
+                       n_positions=int(np.count_nonzero(plan.used)),
+                       n_visibilities=measured.n_visibilities, positions=pos,
+                       options=plan.record, uncovered=inputs.table[~plan.covered],
+                       flux_imag_jy=measured.flux_imag_jy,
+                       partition_sums={p.name: s[:_NSUMS].tolist()
+                                       for p, s in zip(plan.active, measured.sums)},
+                       flux_err_empirical_jy=err_e, weight_scale=measured.weight_scale,
+                       noise_estimate=measured.noise_estimate)
 
 
 # --- public API ---------------------------------------------------------------------------
@@ -699,229 +1169,20 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
 
     Raises
     ------
+    OptionError
+        A bad option value (:class:`UvstackOptions`), before the catalog or data are read;
+        ``sigma`` of the wrong length for the catalog.
     XstackError
-        Bad options, an unreadable catalog, a catalog entirely outside the pointings, zero
+        An unreadable catalog or FITS beam, a catalog entirely outside the pointings, zero
         total weight, no usable visibility, an existing ``out`` without ``overwrite``, a
         ``noise_image`` without celestial WCS or without an estimate for a used position.
     """
-    from xstack._atomic import check_output
-    from xstack._progress import dask_progress
-
-    if weighting not in WEIGHTINGS:
-        raise OptionError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
-    if engine not in ENGINES:
-        raise OptionError(f"unknown engine {engine!r} (use {', '.join(ENGINES)})")
-    _smearing.check_mode(smearing)
-    engine_used = engine
-    if not 0 <= float(pb_cutoff) < 1:
-        raise OptionError(f"pb_cutoff must be in [0, 1), got {pb_cutoff}")
-    lo, hi = uv_limits(uvmin, uvmax)
-    table = _positions_table(positions)
-    npos = len(table)
-    ra = np.radians(np.asarray(table["ra"], dtype=np.float64))
-    dec = np.radians(np.asarray(table["dec"], dtype=np.float64))
-    sig = None
-    noise = None
-    if noise_image is not None:
-        if weighting != "sigma2":
-            raise XstackError(f"noise_image is used only with weighting='sigma2' (got "
-                              f"{weighting!r})")
-        if sigma is not None:
-            raise XstackError("give sigma= or noise_image=, not both")
-    if weighting == "sigma2":
-        if sigma is not None:
-            try:
-                sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (npos,)).copy()
-            except (TypeError, ValueError):
-                raise XstackError(f"sigma must be one number or one per position ({npos})") from None
-        elif noise_image is not None:
-            from xstack.uvstack.localnoise import measure_local_noise
-
-            if "sigma" in table.colnames:
-                warnings.warn(XstackWarning("the catalog's sigma column is ignored: sigma_k "
-                                            "are measured in noise_image",
-                                            option="noise_image"), stacklevel=2)
-            noise = measure_local_noise(noise_image, table)
-            # rows without an estimate get weight 0 here; a used one is an error below
-            sig = np.where(np.isfinite(noise.sigma), noise.sigma, np.inf)
-            if noise.pbcor is False and noise.beam is None and \
-                    str(primary_beam).lower() != "none":
-                warnings.warn(f"noise image {noise.name} is not primary-beam corrected "
-                              "(XSPBCOR = F) and names no primary beam (XSPBFILE): its sigma_k "
-                              "miss the 1/A_k rise of the noise of the corrected flux; give "
-                              "the residual of xstack image (it carries OUT.pb.fits) or a "
-                              "corrected image", stacklevel=2)
-        elif "sigma" in table.colnames:
-            sig = np.asarray(table["sigma"], dtype=np.float64)
-        if noise is None and sig is not None and not np.all(np.isfinite(sig) & (sig > 0)):
-            bad = int(np.argmax(~(np.isfinite(sig) & (sig > 0))))
-            raise XstackError(f"positions row {bad + 1}: sigma must be positive and finite")
-    col_weight = None
-    if weighting == "column":
-        if "weight" not in table.colnames:
-            raise XstackError("weighting='column' needs a 'weight' column in the catalog")
-        col_weight = np.asarray(table["weight"], dtype=np.float64)
-    beam_spec: Any = primary_beam
-    if isinstance(primary_beam, (str, os.PathLike)) and str(primary_beam).lower().endswith(
-            (".fits", ".fit", ".fits.gz")):
-        beam_spec = FitsBeam(primary_beam)
-    elif str(primary_beam).lower() not in ("auto", "airy", "gaussian", "none"):
-        raise XstackError(f"unknown primary beam {primary_beam!r} (use auto, airy, gaussian, "
-                          "none or a FITS file)")
-    if out is not None:
-        check_output(out, overwrite)
-
-    datasets = _load_datasets(data)
-    multi = len(datasets) > 1
-    parts = [(f"{name}_ds{i}" if multi else name, sky_correlations(ds, autocorrelations))
-             for i, (_label, group) in enumerate(datasets) for name, ds in group]
-    # each pointing's view of the positions, computed once (sigma2 weights and plans use it)
-    geometries = [_geometry(ds, ra, dec, beam_spec, float(pb_cutoff)) for _, ds in parts]
-    position_weights: list[Any] = [None] * len(parts)
-    if weighting == "sigma2" and sig is not None and len(parts) > 1:
-        position_weights = _sigma2_pointing_weights(parts, geometries, sig, polarizations, lo,
-                                                    hi, progress)
-    plans: list[_Plan] = [
-        _plan_partition(pname, ds, ra, dec, sig, col_weight, weighting, beam_spec,
-                        float(pb_cutoff), polarizations, (smearing, lo, hi), pw, geo)
-        for (pname, ds), pw, geo in zip(parts, position_weights, geometries)]
-    covered = np.zeros(npos, dtype=bool)
-    for p in plans:
-        covered |= p.used
-    if not covered.any():
-        raise NoDataError(f"none of the {npos} positions lies inside a pointing "
-                          f"(primary-beam cutoff {pb_cutoff})")
-    if noise is not None:
-        missing = np.flatnonzero(covered & ~np.isfinite(noise.sigma))
-        if missing.size:
-            raise XstackError(noise.describe_bad(missing))
-    uncovered = table[~covered]
-    if len(uncovered):
-        warnings.warn(f"{len(uncovered)} of {npos} positions lie in no pointing and are not "
-                      "stacked (see StackResult.uncovered)", stacklevel=2)
-    active = [p for p in plans if p.sum_weight > 0]
-    if not active:
-        raise NoDataError("all position weights are zero: nothing to stack")
-    used_pos = np.zeros(npos, dtype=bool)
-    for p in active:
-        used_pos |= p.used & (p.weight > 0)
-    # the stacked dataset's phase center: the positions' mean direction (the first position
-    # if they cancel)
-    center = mean_direction(ra[used_pos], dec[used_pos]) or \
-        (float(ra[used_pos][0]), float(dec[used_pos][0]))
-    worst = max(float(p.smearing_loss.max(initial=0.0)) for p in active)
-    if worst > _smearing.WARN_LOSS:
-        warnings.warn(XstackWarning(f"smearing costs up to {100 * worst:.0f}% of a position's "
-                                    "flux (corrected to first order; smearing='none' to leave "
-                                    "it)", option="smearing"), stacklevel=2)
-    options = {
-        "weighting": weighting,
-        "primary_beam": beam_spec.path if isinstance(beam_spec, FitsBeam) else str(primary_beam),
-        "pb_cutoff": float(pb_cutoff),
-        "uvmin": None if uvmin is None else str(uvmin),
-        "uvmax": None if uvmax is None else str(uvmax),
-        "polarizations": polarizations if isinstance(polarizations, str) else list(polarizations),
-        "autocorrelations": bool(autocorrelations),
-        "smearing": smearing,
-        "smearing_corrected": [e for i, e in enumerate(("bandwidth", "time"))
-                               if any(p.smearing_effects[i] for p in active)],
-        "engine": engine_used,
-        "sigma": (f"local-noise:{noise.name}" if noise is not None else "given"
-                  if sig is not None else "analytic" if weighting == "sigma2" else None),
-        "stack_center_deg": [float(np.degrees(center[0])), float(np.degrees(center[1]))],
-        "_lo": lo, "_hi": hi, "_antenna_tol_rad": float(antenna_tol_rad),
-    }
-    if noise is not None:
-        options["local_noise"] = noise.provenance()
-    stacked: dict[str, xr.Dataset] = {}
-    sums_graph = []
-    for p in active:
-        ds_out, sums = _stacked_dataset(p, engine_used, center, options, ra, dec,
-                                        shared_phasor=out is not None)
-        stacked[p.name] = ds_out
-        sums_graph.append(sums)
-    scale = np.array([p.sum_weight for p in active])
-    options = {k: v for k, v in options.items() if not k.startswith("_")}
-    n_positions = int(np.count_nonzero(used_pos))
-    measured: dict[str, Any] = {}
-
-    def measure(results: tuple[Any, ...]) -> dict[str, Any]:
-        sums = [np.asarray(r, dtype=np.float64) for r in results]
-        den = sum(s_p * s[1] for s_p, s in zip(scale, sums))
-        nvis = int(round(sum(s[4] for s in sums)))
-        if not den > 0 or nvis == 0:
-            raise NoDataError("no unflagged visibility with positive weight in the selected "
-                              "polarizations and uv range")
-        var_w = sum(s_p**2 * s[2] for s_p, s in zip(scale, sums))
-        # the same variance with the noise measured per block in place of 1/WEIGHT
-        var_e = sum(s_p**2 * s[5] for s_p, s in zip(scale, sums))
-        n_pooled = int(round(sum(s[6] for s in sums)))
-        n_weights = int(round(sum(s[7] for s in sums)))
-        multichan = {int(p.ds.sizes["frequency"]) > 1 for p in active}
-        measured.update(
-            sums=sums, n_visibilities=nvis,
-            flux_jy=float(sum(s_p * s[0] for s_p, s in zip(scale, sums)) / den),
-            flux_err_jy=float(np.sqrt(var_w) / den),
-            flux_err_empirical_jy=float(np.sqrt(var_e) / den),
-            weight_scale=float(var_e / var_w) if var_w > 0 else float("nan"),
-            noise_estimate={
-                "pairs": ("mixed" if len(multichan) > 1 else "channels" if True in multichan
-                          else "integrations"),
-                "own": nvis - n_pooled - n_weights, "pooled": n_pooled, "weights": n_weights},
-            flux_imag_jy=float(sum(s_p * s[3] for s_p, s in zip(scale, sums)) / den))
-        rows = np.sum([s[_NSUMS:] for s in sums], axis=0)
-        ran = {e: int(r) for e, r in zip(_ROW_ENGINES, rows) if r > 0}
-        options["engine"] = next(iter(ran)) if len(ran) == 1 else "mixed" if ran else engine
-        options["engine_rows"] = ran
-        emp = measured["flux_err_empirical_jy"]
-        return {"uvstack": {"flux_jy": measured["flux_jy"], "flux_err_jy": measured["flux_err_jy"],
-                            "flux_err_empirical_jy": emp if np.isfinite(emp) else None,
-                            "n_positions": n_positions, "n_visibilities": nvis,
-                            "options": options}}
-
-    try:
-        if out is None:
-            with dask_progress("uvstack: flux", enabled=progress):
-                measure(dask.compute(*sums_graph))
-        else:
-            from xstack.schema import write_store
-
-            # one pass: the flux sums share each chunk's phasor with the written stack
-            write_store(stacked, out, kind="stacked", overwrite=overwrite, progress=progress,
-                        description="uvstack", compute_with=sums_graph, final_attrs=measure)
-    except MemoryError as exc:
-        if engine_used != "nufft":
-            raise
-        raise XstackError(f"engine 'nufft': {exc}") from None
-
-    pos = Table(table, copy=True)
-    pos["used"] = np.stack([p.used & (p.weight > 0) for p in plans], axis=1)
-    pos["weight_used"] = np.stack([p.weight for p in plans], axis=1)
-    pos["attenuation"] = np.stack([p.attenuation for p in plans], axis=1)
-    pos["smearing_loss"] = np.stack([p.smearing_loss for p in plans], axis=1)
-    pos["n_pointings"] = pos["used"].sum(axis=1)
-    if noise is not None:
-        pos["sigma_local"] = noise.sigma
-    pos.meta["partitions"] = [p.name for p in plans]
-    sums = measured["sums"]
-    ratio = measured["flux_err_empirical_jy"] / measured["flux_err_jy"]
-    if np.isfinite(ratio) and abs(ratio - 1) > EMPIRICAL_TOLERANCE:
-        warnings.warn(XstackWarning(
-            f"uv-stack flux error from WEIGHT ({measured['flux_err_jy']:.3g} Jy) and from the "
-            f"visibility scatter ({measured['flux_err_empirical_jy']:.3g} Jy) differ by "
-            f"{ratio:.3g}x: the weights are mis-scaled"
-            + ("" if ratio < 1 else ", or sky signal changes across channels (bright sources "
-               "far from the phase center: subtract them first)")
-            + "; choose the error printed first with errors='weights' (flux_err_jy) or "
-            "errors='empirical' (flux_err_empirical_jy)",
-            option="errors"),
-            stacklevel=2)
-    return StackResult(stacked=stacked, flux_jy=measured["flux_jy"],
-                       flux_err_jy=measured["flux_err_jy"], n_positions=n_positions,
-                       n_visibilities=measured["n_visibilities"], positions=pos, options=options,
-                       uncovered=uncovered, flux_imag_jy=measured["flux_imag_jy"],
-                       partition_sums={p.name: s[:_NSUMS].tolist()
-                                       for p, s in zip(active, sums)},
-                       flux_err_empirical_jy=measured["flux_err_empirical_jy"],
-                       weight_scale=measured["weight_scale"],
-                       noise_estimate=measured["noise_estimate"])
+    options = UvstackOptions(
+        weighting=weighting, primary_beam=primary_beam, pb_cutoff=pb_cutoff, uvmin=uvmin,
+        uvmax=uvmax, sigma=sigma, noise_image=noise_image, polarizations=polarizations,
+        engine=engine, out=out, overwrite=overwrite, progress=progress,
+        antenna_tol_rad=antenna_tol_rad, autocorrelations=autocorrelations, smearing=smearing)
+    inputs = _load(data, positions, options)  # the catalog; the data opened lazily
+    plan = _plan(inputs, options)  # what enters, with which weight (no visibility read)
+    measured = _compute(plan, options)  # the one pass over the data (and the write)
+    return _assemble(plan, measured, options)

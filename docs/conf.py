@@ -18,7 +18,6 @@ import importlib
 import pkgutil
 import re
 import sys
-import types
 from pathlib import Path
 
 from docutils import nodes
@@ -93,11 +92,6 @@ def _options_classes() -> list[str]:
             if (isinstance(obj, type) and attr.endswith("Options") and not attr.startswith("_")
                     and dataclasses.is_dataclass(obj) and obj.__module__ == info.name):
                 found.setdefault(id(obj), f"{info.name}.{attr}")
-    # importing a submodule binds it on its package: ``xstack.info`` (the module) would now
-    # hide the lazily imported public function of that name from autodoc
-    for name in xstack.__all__:
-        if isinstance(vars(xstack).get(name), types.ModuleType):
-            delattr(xstack, name)
     return sorted(found.values())
 
 

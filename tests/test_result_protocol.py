@@ -91,6 +91,10 @@ def test_numbers_agree_across_the_protocol(chain):
     t = im.table()
     assert len(t) == im.n_stamps
     assert np.nanmean(t["center_jy"]) == pytest.approx(im.flux_jy, rel=1e-9)
+    from xstack.fit.uvfit import UvFitOptions
+
+    assert fit.options == UvFitOptions(model="point").to_dict() == fit.to_dict()["options"]
+    assert uv.options["weighting"] == "none" and noise.options["method"] == "bootstrap"
     ft = fit.table()
     assert list(ft["parameter"]) == list(fit.parameters)
     assert ft["error"][list(ft["parameter"]).index("flux_jy")] == pytest.approx(fit.flux_err_jy)

@@ -177,5 +177,10 @@ def test_no_subpackage_shares_a_public_function_name():
         assert type(module) is types.ModuleType, sub
         assert sub not in xstack.__all__, sub
         assert getattr(xstack, sub) is module
+    # no public name is also a module: importing it would replace the function on the package
+    import importlib.util
+
+    for name in xstack.__all__:
+        assert importlib.util.find_spec(f"xstack.{name}") is None, name
     assert callable(xstack.stack_uv) and xstack.stack_uv.__module__ == "xstack.uvstack.stack"
     assert xstack.stack_images.__module__ == "xstack.imstack.stack"

@@ -83,7 +83,7 @@ _API = {
     "fit_image": "xstack.fit.imfit:fit_image",
     "estimate_noise": "xstack.noise.estimate:estimate_noise",
     # inspecting
-    "info": "xstack.info:info",
+    "info": "xstack._info:info",
 }
 
 __all__ = ["__version__", "numba_cache_dir", *_API]

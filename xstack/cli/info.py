@@ -118,9 +118,9 @@ def image_lines(d: dict[str, Any]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from xstack._info import info
     from xstack.cli import emit_json
     from xstack.cli._output import result
-    from xstack.info import info
 
     d = info(args.path, datacolumn=args.datacolumn)
     if args.json:

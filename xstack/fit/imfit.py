@@ -492,7 +492,8 @@ def _assemble(inputs: _Inputs, plan: _Plan, measured: _Measured,
                        flux_err_jy=float(np.sqrt(cov[0, 0])), parameters=tuple(names),
                        values=np.array(values), covariance=cov, chi2=rss / sigma2,
                        dof=int(round(dof_eff)), chi2_reduced=rss / sigma2 / max(dof_eff, 1),
-                       error_scale=1.0, n_data=plan.npix, extra=extra)
+                       error_scale=1.0, n_data=plan.npix, extra=extra,
+                       options=options.to_dict())
     if gaussian:
         if not S > 0:
             raise XstackError(f"gaussian fit ill-conditioned: fitted flux {S:.3g} Jy is not "

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from xstack._json import finite_or_none
-from xstack._result import Result
+from xstack._result import Result, json_ready
 
 
 @dataclass(kw_only=True)
@@ -32,6 +32,8 @@ class FitResult(Result):
     error_scale : factor the errors were multiplied by (sqrt(chi2_reduced) or 1)
     n_data : number of visibilities (uv) or pixels (image) used
     extra : stage-specific details (constant term, correlation treatment, bins, ...)
+    options : the fit's options as given (:class:`~xstack.fit.imfit.ImageFitOptions` or
+        :class:`~xstack.fit.uvfit.UvFitOptions` ``.to_dict()``)
     """
 
     model: str
@@ -51,6 +53,7 @@ class FitResult(Result):
     error_scale: float = 1.0
     n_data: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_vis(self) -> int:
@@ -76,6 +79,7 @@ class FitResult(Result):
             "chi2_reduced": finite_or_none(self.chi2_reduced),
             "error_scale": finite_or_none(self.error_scale),
             "n_data": int(self.n_data),
+            "options": json_ready(self.options),
         }
         for key, value in self.extra.items():
             if isinstance(value, (np.generic,)):

@@ -332,6 +332,7 @@ def _assemble(res: FitResult, extra: dict[str, Any], q2: np.ndarray, n_total: in
     ``uvmin``, ``uvmax``) and the uv range of the data."""
     res.extra.update(extra)
     opts = options.to_dict()
+    res.options = opts
     res.extra.update({"binned": opts["binned"], "n_vis_before_uv_cut": int(n_total),
                       "uvmin": opts["uvmin"], "uvmax": opts["uvmax"],
                       "q_range_klambda": [float(np.sqrt(q2.min()) / 1e3),

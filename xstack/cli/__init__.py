@@ -38,7 +38,7 @@ from xstack.errors import XstackError, XstackWarning
 
 #: Sub-commands in the order ``xstack --help`` lists them.
 COMMANDS = ("convert", "export", "simulate", "image", "subtract", "uvstack", "imstack",
-            "fit", "noise", "info", "demo")
+            "fit", "noise", "info", "demo", "reproduce")
 
 
 def _load(name: str) -> Any | None:

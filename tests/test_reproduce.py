@@ -1,0 +1,243 @@
+"""``xstack reproduce``: the paper's Table 2 chain over realisations, resumable, and its JSON.
+
+Two cheap types (1 and 2: one bright source, 25 targets) at a tiny scale with 2
+realisations, on a small image (the paper's 1440 x 1440 / 720 x 720 pixels would make the
+test slow; the image size is a procedure knob). The truth is from outside the code: the
+injected flux is the paper's 6 µJy (Table 1), the paper's numbers are checked against the
+text of Table 2 typed here as literals, means and scatters against plain numpy on the lines
+of the JSONL file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from xstack.errors import OptionError
+from xstack.reproduce import paper
+from xstack.reproduce import run as rr
+
+SCALE = 0.005
+TYPES = (1, 2)
+#: a 6' field as the paper's type 1/2 images, at 1 arcsec pixels: fast, still 3 px per beam
+SMALL = {n: dataclasses.replace(paper.PROCEDURES[n], cell_arcsec=1.0, size=360) for n in TYPES}
+KEYS = {"type", "realizations", "scale", "true_flux_jy", "uv_flux_mean_jy", "uv_flux_scatter_jy",
+        "image_flux_mean_jy", "image_flux_scatter_jy", "expected_noise_jy", "paper", "seconds"}
+
+
+@pytest.fixture(scope="module")
+def first(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reproduce")
+    res = rr.reproduce(list(TYPES), realizations=2, scale=SCALE, outdir=out, procedures=SMALL)
+    return out, res, json.loads(json.dumps(res.to_dict()))
+
+
+def _lines(out, n):
+    return [json.loads(x) for x in (out / f"type{n}" / rr.JSONL).read_text().splitlines()]
+
+
+def test_json_keys_counts_and_truth(first):
+    out, res, d = first
+    assert [t["type"] for t in d["types"]] == list(TYPES)
+    for t in d["types"]:
+        assert KEYS <= set(t)
+        assert t["realizations"] == 2 and t["scale"] == SCALE
+        # Table 1 / §2.2.1: 25 point sources of 6 µJy
+        assert t["true_flux_jy"] == pytest.approx(6e-6, rel=1e-12)
+        for k in ("uv_flux_mean_jy", "uv_flux_scatter_jy", "image_flux_mean_jy",
+                  "image_flux_scatter_jy", "expected_noise_jy", "seconds"):
+            assert t[k] is not None and math.isfinite(t[k]), k
+        # a detection-level stack: within 5 expected sigma of the truth
+        for k in ("uv_flux_mean_jy", "image_flux_mean_jy"):
+            assert abs(t[k] - 6e-6) < 5 * t["expected_noise_jy"], (k, t[k])
+
+
+def test_table_one_row_per_type(first):
+    out, res, d = first
+    table = res.table()
+    assert list(table["type"]) == list(TYPES)
+    assert str(table["uv_flux_mean_jy"].unit) == "Jy"
+    assert table["paper.uv_snr"][0] == 15.8
+
+
+def test_summary_is_plain_numpy_of_the_jsonl(first):
+    out, res, d = first
+    for t in d["types"]:
+        lines = _lines(out, t["type"])
+        assert sorted(r["seed"] for r in lines) == [0, 1]
+        uv = np.array([r["uv_flux_jy"] for r in lines])
+        im = np.array([r["image_flux_jy"] for r in lines])
+        assert t["uv_flux_mean_jy"] == pytest.approx(uv.mean(), rel=1e-12)
+        assert t["uv_flux_scatter_jy"] == pytest.approx(uv.std(ddof=1), rel=1e-12)
+        assert t["image_flux_mean_jy"] == pytest.approx(im.mean(), rel=1e-12)
+        assert t["image_flux_scatter_jy"] == pytest.approx(im.std(ddof=1), rel=1e-12)
+        assert t["seconds"] == pytest.approx(sum(r["seconds"] for r in lines), rel=1e-12)
+        for r in lines:  # one uv-profile per realisation, on the common bins
+            assert len(r["profile"]["re_jy"]) == len(rr.PROFILE_EDGES_KLAMBDA) - 1
+
+
+def test_paper_rows_are_table_2(first):
+    out, res, d = first
+    by = {t["type"]: t["paper"] for t in d["types"]}
+    for n in TYPES:
+        assert by[n] == json.loads(json.dumps(paper.paper_row(n)))
+    # Table 2 (tab:simresults), row 1: 6.00±0.47 | 6.02±0.38 (15.8) | 5.89±0.49 (12.0) µJy
+    assert by[1]["expected_flux_jy"] == pytest.approx(6.00e-6)
+    assert by[1]["expected_noise_jy"] == pytest.approx(0.47e-6)
+    assert by[1]["uv_flux_jy"] == pytest.approx(6.02e-6)
+    assert by[1]["uv_scatter_jy"] == pytest.approx(0.38e-6)
+    assert by[1]["uv_snr"] == 15.8
+    # row 2: image-stacking 5.73±0.49 µJy (11.7)
+    assert by[2]["image_flux_jy"] == pytest.approx(5.73e-6)
+    assert by[2]["image_snr"] == 11.7
+    # row 9 (mJy): uv 1.00±0.08 (12.5); row 7's sizes (§4.1.7, Fig. 8): uv 1.50", image 1.55"
+    assert paper.PAPER_TABLE2[9]["uv_scatter_jy"] == pytest.approx(0.08e-3)
+    assert paper.PAPER_TABLE2[9]["uv_snr"] == 12.5
+    sizes = paper.paper_row(7)["sizes"]
+    assert sizes["uv_fwhm_arcsec"] == 1.50 and sizes["image_fwhm_arcsec"] == 1.55
+    # the procedure choices: 5000 m cut for 5-7, PSF fit for 7, mosaics for 8-10
+    assert {n for n, p in paper.PROCEDURES.items() if p.uvmin_m == 5000.0} == {5, 6, 7}
+    assert [n for n, p in paper.PROCEDURES.items() if p.fit_size] == [7]
+    assert {n for n, p in paper.PROCEDURES.items() if p.mosaic} == {8, 9, 10}
+
+
+def test_files_kept_and_temporaries_removed(first):
+    out, res, d = first
+    for n in TYPES:
+        work = out / f"type{n}"
+        names = sorted(p.name for p in work.iterdir())
+        assert names == ["profile_seed0.npz", rr.JSONL, "stamp_seed0.npz"], names
+        with np.load(work / "stamp_seed0.npz") as z:
+            assert z["stamp"].ndim == 2 and np.isfinite(z["stamp"]).any()
+        with np.load(work / "profile_seed0.npz") as z:
+            assert len(z.files) > 1
+
+
+def test_resume_runs_only_missing_and_redoes_truncated(first, monkeypatch):
+    out, res, d = first
+    calls = []
+    real = rr.run_realization
+
+    def counting(n, seed, *args, **kw):
+        calls.append((n, seed))
+        return real(n, seed, *args, **kw)
+
+    monkeypatch.setattr(rr, "run_realization", counting)
+    before = _lines(out, 1)
+    res3 = rr.reproduce(1, realizations=3, scale=SCALE, outdir=out, procedures=SMALL)
+    assert calls == [(1, 2)]
+    after = _lines(out, 1)
+    assert after[:2] == before and [r["seed"] for r in after] == [0, 1, 2]
+    assert res3.types[0].realizations == 3
+
+    # an interrupted write: the last line cut in the middle is ignored and that seed redone
+    path = out / "type1" / rr.JSONL
+    text = path.read_text()
+    last = text.splitlines()[-1]
+    path.write_text(text[: len(text) - len(last) // 2 - 1])
+    calls.clear()
+    res3 = rr.reproduce(1, realizations=3, scale=SCALE, outdir=out, procedures=SMALL)
+    assert calls == [(1, 2)]
+    assert [r["seed"] for r in _lines(out, 1)] == [0, 1, 2]
+    assert res3.types[0].realizations == 3
+
+    # nothing missing: nothing runs
+    calls.clear()
+    rr.reproduce(1, realizations=2, scale=SCALE, outdir=out, procedures=SMALL)
+    assert calls == []
+
+
+def test_cli_json_and_table(tmp_path, capsys):
+    """The command with the paper's own type-2 procedure (720 x 720 pixels of 0.5")."""
+    from xstack.cli import main
+
+    argv = ["reproduce", "--type", "2", "--realizations", "1", "--scale", str(SCALE),
+            "--outdir", str(tmp_path), "--no-progress", "-q"]
+    assert main([*argv, "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)  # stdout is one JSON object
+    (t,) = printed["types"]
+    assert KEYS <= set(t) and t["type"] == 2 and t["realizations"] == 1
+    (line,) = _lines(tmp_path, 2)
+    assert line["procedure"]["size"] == 720 and line["procedure"]["cell_arcsec"] == 0.5
+    assert t["uv_flux_mean_jy"] == pytest.approx(line["uv_flux_jy"], rel=1e-12)
+    assert t["true_flux_jy"] == pytest.approx(6e-6, rel=1e-12)
+    # the human table beside the paper's row; a second run resumes (nothing new to run)
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "uv-stacking" in text and "paper (Table 2)" in text and "(15.8)" in text
+    assert len(_lines(tmp_path, 2)) == 1
+    # --overwrite forgets the earlier realisation and runs it again
+    assert main([*argv, "--overwrite", "--json"]) == 0
+    (again,) = _lines(tmp_path, 2)
+    assert again["seconds"] != line["seconds"]
+    # same seed, same data; multithreaded gridding sums in another order (~1e-6 relative)
+    assert again["uv_flux_jy"] == pytest.approx(line["uv_flux_jy"], rel=1e-4)
+
+
+def test_other_procedure_is_not_resumed(first, monkeypatch):
+    out, res, d = first
+    calls = []
+    monkeypatch.setattr(rr, "run_realization", lambda n, seed, *a, **k: calls.append(seed) or {
+        "seed": seed, "seconds": 0.0})
+    other = {1: dataclasses.replace(SMALL[1], clean_threshold_jy=30e-6)}
+    rr.reproduce(1, realizations=1, scale=SCALE, outdir=out, procedures=other)
+    assert calls == [0]
+
+
+def test_dask_client_runs_realizations_as_tasks(first):
+    distributed = pytest.importorskip("distributed")
+    out, res, d = first
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=1,
+                            dashboard_address=None) as client:
+        res4 = rr.reproduce(2, realizations=3, scale=SCALE, outdir=out, procedures=SMALL,
+                            client=client)
+    assert [r["seed"] for r in _lines(out, 2)] == [0, 1, 2]
+    assert res4.types[0].realizations == 3
+
+
+def test_clean_threshold_is_the_papers_above_the_noise():
+    # §2.2.1: 20 µJy for type 1; §2.2.4: 50 µJy from type 4 on; thermal limit 2.1 µJy (§2.2)
+    assert rr.clean_threshold(paper.PROCEDURES[1], 1.0) == 20e-6
+    assert rr.clean_threshold(paper.PROCEDURES[7], 1.0) == 50e-6
+    assert rr.clean_threshold(paper.PROCEDURES[7], 0.05) == 50e-6
+    assert rr.clean_threshold(paper.PROCEDURES[1], 0.01) == pytest.approx(5 * 2.1e-6 / 0.1)
+
+
+def test_types_refused():
+    assert rr.parse_types("all") == list(rr.SUPPORTED_TYPES)
+    assert rr.parse_types(["3", 1]) == [1, 3]
+    for bad in ("12", "x", 9):
+        with pytest.raises(OptionError):
+            rr.parse_types(bad)
+    with pytest.raises(OptionError):
+        rr.reproduce(1, realizations=0, outdir="unused")
+
+
+def test_type7_fits_sizes(tmp_path):
+    """Type 7's chain adds the Gaussian fits (uv beyond 5000 m, image with the PSF): sizes
+    and fitted fluxes per realisation, their mean and scatter in ``sizes``. A coarse image
+    (1.5" pixels over a 35' image) keeps it quick; the numbers are not the paper's here."""
+    proc = {7: dataclasses.replace(paper.PROCEDURES[7], cell_arcsec=1.5, size=1400)}
+    res = rr.reproduce(7, realizations=2, scale=SCALE, outdir=tmp_path, procedures=proc)
+    (t,) = res.to_dict()["types"]
+    assert t["paper"]["sizes"] == paper.PAPER_TYPE7_SIZES
+    lines = _lines(tmp_path, 7)
+    s = t["sizes"]
+    for domain in ("uv", "image"):
+        failed = 0
+        for r in lines:
+            # a fit that fails on a noisy realisation is recorded as missing, with its reason
+            assert r[f"{domain}_flux_jy"] == r[f"{domain}_fit_flux_jy"]
+            if r[f"{domain}_fwhm_arcsec"] is None:
+                failed += 1
+                assert r[f"{domain}_fit_error"]
+        assert s[f"{domain}_fits_failed"] == failed
+        fw = [r[f"{domain}_fwhm_arcsec"] for r in lines if r[f"{domain}_fwhm_arcsec"] is not None]
+        if fw:
+            assert s[f"{domain}_fwhm_mean_arcsec"] == pytest.approx(np.mean(fw), rel=1e-12)
+    for r in lines:
+        assert r["true_flux_jy"] == pytest.approx(2.96e-6, rel=1e-12)  # Table 1 / §2.2.7

@@ -491,7 +491,7 @@ def print_tables(rows: list[Row]) -> None:
         if not sel:
             continue
         out("")
-        out(f"### {knob}")
+        out(f"## {knob}")
         out("")
         out("| setting | wall [s] | CPU [s] | peak alloc [MiB] | error | note |")
         out("|---|---|---|---|---|---|")
@@ -500,7 +500,7 @@ def print_tables(rows: list[Row]) -> None:
                 f"{_fmt(r.cpu, '.3f')} | {_fmt(r.peak_mib, '.1f')} | {_fmt(r.error, '.1e')} | "
                 f"{r.note} |")
     out("")
-    out("### Summary")
+    out("## Summary")
     out("")
     out("| knob | setting | wall [s] | error |")
     out("|---|---|---|---|")

@@ -41,9 +41,9 @@ def test_every_knob_has_rows_and_outputs(bench, run):
     text = md.read_text()
     assert "load average at start" in text
     for knob in bench.KNOBS:
-        assert f"### {knob}" in text
+        assert f"## {knob}" in text
     # the summary table has one line per measured setting
-    summary = text.split("### Summary")[1]
+    summary = text.split("## Summary")[1]
     assert sum(line.startswith("| ") for line in summary.splitlines()) == len(rows) + 1
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     for r in rows:

@@ -22,8 +22,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "Table 2. Resumable: each realisation is appended to "
                     "OUTDIR/typeN/realizations.jsonl and a new run does only the missing "
                     "ones. Types 8-10 (ALMA mosaics) are not reproducible yet.")
-    p.add_argument("--type", dest="types", action="append", required=True, metavar="N|all",
-                   help="data-set type 1-11, or all (the supported ones); repeatable")
+    p.add_argument("--type", dest="types", action="append", default=None, metavar="N|all",
+                   help="data-set type 1-11, or all (the supported ones); repeatable; "
+                        "required unless --report-only")
     p.add_argument("--realizations", type=int, default=100, metavar="R",
                    help="realisations (seeds 0..R-1) per type (default 100, as the paper)")
     p.add_argument("--scale", type=float, default=1.0, metavar="F",
@@ -36,6 +37,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="forget earlier realisations of these types in --outdir and run all "
                         "again (default: resume)")
+    p.add_argument("--report-only", action="store_true",
+                   help="run nothing: (re)write DIR/report.md (the table beside the paper's) "
+                        "and DIR/figures/ from the realisations already in --outdir (a normal "
+                        "run writes them at its end too)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -43,9 +48,19 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from xstack.cli import emit_json
-    from xstack.cli._output import progress_enabled, say
+    from xstack.cli._output import progress_enabled, result, say
+    from xstack.reproduce.report import write_report
     from xstack.reproduce.run import parse_types, reproduce
 
+    if args.report_only:
+        path = write_report(Path(args.outdir))
+        if args.json:
+            emit_json({"report": str(path)})
+        else:
+            result(f"report: {path} (figures in {path.parent / 'figures'}/)")
+        return 0
+    if not args.types:
+        raise XstackError("--type is required (unless --report-only)")
     types = parse_types(args.types)
     if args.realizations < 1:
         raise XstackError("--realizations must be >= 1")
@@ -69,7 +84,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if client is not None:
             client.close()
-    payload = res.to_dict()
+    # the report covers every type in the directory, also those of earlier runs
+    payload = {**res.to_dict(), "report": str(write_report(outdir))}
+    say(f"report: {payload['report']}")
     if args.json:
         emit_json(payload)
     else:

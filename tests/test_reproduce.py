@@ -208,9 +208,11 @@ def test_clean_threshold_is_the_papers_above_the_noise():
 
 
 def test_types_refused():
-    assert rr.parse_types("all") == list(rr.SUPPORTED_TYPES)
+    # all eleven of Table 2, the ALMA mosaics 8-10 included
+    assert rr.parse_types("all") == list(range(1, 12))
     assert rr.parse_types(["3", 1]) == [1, 3]
-    for bad in ("12", "x", 9):
+    assert rr.parse_types([9, "8", 10]) == [8, 9, 10]
+    for bad in ("12", "x", 0):
         with pytest.raises(OptionError):
             rr.parse_types(bad)
     with pytest.raises(OptionError):
@@ -241,3 +243,134 @@ def test_type7_fits_sizes(tmp_path):
             assert s[f"{domain}_fwhm_mean_arcsec"] == pytest.approx(np.mean(fw), rel=1e-12)
     for r in lines:
         assert r["true_flux_jy"] == pytest.approx(2.96e-6, rel=1e-12)  # Table 1 / §2.2.7
+        assert math.isfinite(r["image_flux_filtered_jy"])
+    # Fig. 12: the first realisation keeps the filtered stamp; the filter zeroes the Fourier
+    # cells below 5000 m, the zero-spacing one among them, so the stamp sums to zero
+    with np.load(tmp_path / "type7" / "stamp_seed0.npz") as z:
+        stamp, filtered = z["stamp"], z["stamp_filtered"]
+    assert filtered.shape == stamp.shape
+    assert abs(filtered.sum()) < 1e-9 * np.abs(filtered).sum()
+    assert not np.allclose(filtered, stamp)
+
+
+def test_records_of_types_1_2_have_no_figure_extras(first):
+    """The Fig. 1 subsets and the Fig. 12 filtered flux belong to types 5-7 only."""
+    out, res, d = first
+    for n in TYPES:
+        for r in _lines(out, n):
+            assert "uv_flux_subsets_jy" not in r and "image_flux_filtered_jy" not in r
+            # the single-pointing procedure is recorded as before (resumes earlier runs)
+            assert "pointing_size" not in r["procedure"]
+
+
+def test_subset_sizes():
+    assert rr.subset_sizes(45) == [10, 30, 45]
+    assert rr.subset_sizes(900) == [10, 30, 100, 300, 900]
+    assert rr.subset_sizes(1000) == [10, 30, 100, 300, 1000]
+    assert rr.subset_sizes(300) == [10, 30, 100, 300]
+    assert rr.subset_sizes(7) == [7]
+
+
+def test_type5_subsets_and_filtered_flux(tmp_path, monkeypatch):
+    """Type 5 records carry the uv-stacked flux of the first N targets (Fig. 1) and the
+    image-stacked flux with the 5000 m uv-plane filter (Fig. 12). 45 targets (a tiny scale
+    with the target count of scale 0.05) give the subsets 10, 30 and 45; the stacks of the
+    subsets are checked to be made on the first N rows of the target catalog, the same
+    residual data each time."""
+    import xstack
+
+    _counts(monkeypatch, targets=45)
+    seen = []
+    real = xstack.stack_uv
+
+    def recording(data, positions, **kw):
+        seen.append((str(data), list(np.asarray(positions["ra"], dtype=float))))
+        return real(data, positions, **kw)
+
+    monkeypatch.setattr(xstack, "stack_uv", recording)
+    proc = {5: dataclasses.replace(paper.PROCEDURES[5], cell_arcsec=1.5, size=1400)}
+    res = rr.reproduce(5, realizations=1, scale=SCALE, outdir=tmp_path, procedures=proc)
+    (line,) = _lines(tmp_path, 5)
+    subsets = line["uv_flux_subsets_jy"]
+    assert list(subsets) == ["10", "30", "45"] and line["n_targets"] == 45
+    assert all(math.isfinite(v) for v in subsets.values())
+    # all targets: the flux of the record, and of the summary
+    assert subsets["45"] == pytest.approx(line["uv_flux_jy"], rel=1e-12, abs=0)
+    assert res.types[0].uv_flux_mean_jy == pytest.approx(subsets["45"], rel=1e-12)
+    # nested: every stack is of the first N positions of the all-targets stack, same data
+    full = max(seen, key=lambda x: len(x[1]))
+    assert sorted(len(ra) for _, ra in seen) == [10, 30, 45]
+    for data, ra in seen:
+        assert data == full[0] and ra == full[1][: len(ra)]
+    assert math.isfinite(line["image_flux_filtered_jy"])
+    assert line["image_flux_filtered_jy"] != line["image_flux_jy"]
+
+
+def _counts(monkeypatch, mosaic_arcsec=None, **counts):
+    """The presets with these population counts (e.g. ``bright=3``) at any scale and, with
+    ``mosaic_arcsec``, a contiguous mosaic of that side instead of 100"."""
+    import xstack
+
+    real = xstack.preset_scene
+
+    def scene(name, scale=1.0):
+        s = real(name, scale=scale)
+        for p in s.populations:
+            p.count = counts.get(p.name, p.count)
+            if mosaic_arcsec is not None and p.positions.kind == "box":
+                p.positions.size_arcsec = [mosaic_arcsec, mosaic_arcsec]
+        if mosaic_arcsec is not None:
+            s.pointings.size_arcsec = [mosaic_arcsec, mosaic_arcsec]
+        return s
+
+    monkeypatch.setattr(xstack, "preset_scene", scene)
+
+
+def test_mosaic_type9_per_pointing(tmp_path, monkeypatch):
+    """Type 9 (non-contiguous ALMA mosaic): each pointing CLEANed on its own, its model
+    subtracted from its own visibilities, all pointings uv-stacked together and the pointing
+    images image-stacked. Three pointings, one integration (scale 0.01), 0.4" pixels."""
+    _counts(monkeypatch, bright=3)  # type 9 has one pointing on each bright source
+    proc = {9: dataclasses.replace(paper.PROCEDURES[9], cell_arcsec=0.4, size=128)}
+    res = rr.reproduce(9, realizations=1, scale=0.01, outdir=tmp_path, procedures=proc)
+    (t,) = json.loads(json.dumps(res.to_dict()))["types"]
+    assert KEYS <= set(t) and t["type"] == 9 and t["realizations"] == 1
+    # Table 1 / §2.3.2: targets of 1 mJy; Table 2 row 9 (mJy): 1.00 ± 0.09 | 1.00 ± 0.08
+    # (12.5) | 0.97 ± 0.09 (10.8)
+    assert t["true_flux_jy"] == pytest.approx(1e-3, rel=1e-12)
+    assert t["paper"]["expected_noise_jy"] == pytest.approx(0.09e-3)
+    assert t["paper"]["uv_scatter_jy"] == pytest.approx(0.08e-3)
+    assert t["paper"]["image_flux_jy"] == pytest.approx(0.97e-3)
+    assert t["paper"]["image_snr"] == 10.8
+    (line,) = _lines(tmp_path, 9)
+    assert line["pointings"] == 3 and line["clean_components"] > 0
+    # the ALMA weights sigma_k = 1/A (§3.2): "pb" in both stacks
+    assert line["procedure"]["uv_weighting"] == line["procedure"]["image_weighting"] == "pb"
+    for k in ("uv_flux_jy", "image_flux_jy", "expected_noise_jy", "uv_stack_flux_err_jy"):
+        assert math.isfinite(line[k]), k
+    # a detection-level stack of 10 targets: within 5 expected sigma of 1 mJy
+    for k in ("uv_flux_jy", "image_flux_jy"):
+        assert abs(line[k] - 1e-3) < 5 * line["expected_noise_jy"], (k, line[k])
+    names = sorted(p.name for p in (tmp_path / "type9").iterdir())
+    assert names == ["profile_seed0.npz", rr.JSONL, "stamp_seed0.npz"], names
+
+
+@pytest.mark.slow  # ~15 s on a loaded machine: type 9 covers the per-pointing chain by default
+def test_mosaic_type8_joint(tmp_path, monkeypatch):
+    """Type 8 (contiguous ALMA mosaic): CLEANed pointing by pointing, image-stacked on the
+    joint linear mosaic. A 40" mosaic (a few 20"-spaced pointings), one integration."""
+    _counts(monkeypatch, mosaic_arcsec=40.0)
+    proc = {8: dataclasses.replace(paper.PROCEDURES[8], cell_arcsec=0.4, size=160,
+                                   pointing_size=128)}
+    res = rr.reproduce(8, realizations=1, scale=0.01, outdir=tmp_path, procedures=proc)
+    (t,) = json.loads(json.dumps(res.to_dict()))["types"]
+    # Table 1 / §2.3.1: targets of 1 mJy; Table 2 row 8 (mJy): 0.98 ± 0.12 (8.2) | 0.90 ± 0.11
+    assert t["true_flux_jy"] == pytest.approx(1e-3, rel=1e-12)
+    assert t["paper"]["uv_flux_jy"] == pytest.approx(0.98e-3)
+    assert t["paper"]["image_flux_jy"] == pytest.approx(0.90e-3)
+    (line,) = _lines(tmp_path, 8)
+    assert line["pointings"] > 1 and line["procedure"]["pointing_size"] == 128
+    for k in ("uv_flux_jy", "image_flux_jy", "expected_noise_jy"):
+        assert math.isfinite(line[k]), k
+    for k in ("uv_flux_jy", "image_flux_jy"):
+        assert abs(line[k] - 1e-3) < 5 * line["expected_noise_jy"], (k, line[k])

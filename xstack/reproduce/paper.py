@@ -73,11 +73,22 @@ class Procedure:
         image) instead of the stacked flux.
     mosaic
         ``"joint"``: a contiguous mosaic imaged as one (8, 10); ``"pointings"``: each pointing
-        imaged and CLEANed on its own (9); None: one pointing.
+        imaged and CLEANed on its own (9); None: one pointing. Differs from the paper for
+        8 and 10: the paper CLEANs the joint mosaic (CASA's mosaic gridding); xstack's CLEAN
+        works on one pointing at a time (a joint CLEAN needs the mosaic's position-dependent
+        PSF and beam), so every pointing is CLEANed and subtracted on its own as in type 9
+        (:func:`xstack.reproduce.run.clean_subtract_mosaic`); only the image-stacked map is
+        the joint (linear) mosaic, not CASA's, whose blurring the paper blames for type 8's
+        20 % low image-stacked flux (§4.2.1).
+    pointing_size
+        Mosaics only: the size (pixels) of the image of one pointing that is CLEANed (types 8
+        and 10: 256 pixels of 0.2", 51", twice the 25" primary-beam FWHM of a 12 m dish at
+        230 GHz, as type 9's pointing images); None: ``size``. Left out of :meth:`to_dict`
+        when None, so that the records of the single-pointing types keep their procedure.
     uv_weighting, image_weighting
         Position weights 1/sigma_k^2 (eq. 2) in both: sigma_k the local noise of the residual
         map around position k; uv-stacking uses "the same local noise estimators as in
-        image-stacking" (§3.3).
+        image-stacking" (§3.3). ALMA (8-10): ``"pb"``, sigma_k = 1/A_N(S_k) (§3.2).
     thermal_noise_jy
         The thermal noise limit at the center of the full-size data set (Jy/beam): 2.1 µJy
         for the VLA types (§2.2; type 11 "similar", §2.4), 0.5 mJy for one ALMA pointing
@@ -100,12 +111,21 @@ class Procedure:
     image_weighting: str = "sigma2"
     epsilon: float = 1e-4
     thermal_noise_jy: float = 2.1e-6
+    pointing_size: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        if d["pointing_size"] is None:  # added later: earlier records lack it
+            del d["pointing_size"]
+        return d
 
 
 _VLA_WIDE = dict(cell_arcsec=0.5, size=4000)
+#: ALMA (§2.3): 0.2" pixels, CLEAN above 2 mJy to 2 mJy, 0.5 mJy/beam per pointing; position
+#: weights sigma_k = 1/A_N(S_k) in both stacks (§3.2: the ALMA stamps are too small for a
+#: local rms), i.e. W_k = A^2, xstack's ``"pb"`` weighting.
+_ALMA = dict(cell_arcsec=0.2, clean_threshold_jy=2e-3, clean_min_flux_jy=2e-3,
+             thermal_noise_jy=0.5e-3, uv_weighting="pb", image_weighting="pb")
 
 #: The paper's per-type procedure (§2 for imaging and CLEAN, §4 for the uv cut and fits).
 #: Type 3 is "based on type 2" (20 µJy threshold); type 4 raises it to 50 µJy and types 5-7
@@ -120,12 +140,9 @@ PROCEDURES: dict[int, Procedure] = {
     6: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0),
     7: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0,
                  fit_size=True),
-    8: Procedure(cell_arcsec=0.2, size=800, clean_threshold_jy=2e-3, clean_min_flux_jy=2e-3,
-                 mosaic="joint", thermal_noise_jy=0.5e-3),
-    9: Procedure(cell_arcsec=0.2, size=256, clean_threshold_jy=2e-3, clean_min_flux_jy=2e-3,
-                 mosaic="pointings", thermal_noise_jy=0.5e-3),
-    10: Procedure(cell_arcsec=0.2, size=800, clean_threshold_jy=2e-3, clean_min_flux_jy=2e-3,
-                  mosaic="joint", thermal_noise_jy=0.5e-3),
+    8: Procedure(**_ALMA, size=800, mosaic="joint", pointing_size=256),
+    9: Procedure(**_ALMA, size=256, mosaic="pointings"),
+    10: Procedure(**_ALMA, size=800, mosaic="joint", pointing_size=256),
     11: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6),
 }
 

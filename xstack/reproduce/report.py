@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack.coords import SPEED_OF_LIGHT
 from xstack.errors import NoDataError
 from xstack.reproduce.paper import MJY, PAPER_TYPE7_SIZES, PROCEDURES, TYPES, UJY, paper_row
 from xstack.reproduce.run import JSONL, PROFILE_EDGES_KLAMBDA, read_records
@@ -31,7 +32,6 @@ UNITS: dict[int, tuple[float, str]] = {n: (MJY, "mJy") if n in (8, 9, 10) else (
 #: Center frequency of the VLA presets (paper-1 ... paper-7, paper-11), Hz: converts the 5000 m
 #: uv cut to kilo-wavelengths when the run kept no uv-profile file to read the wavelength from.
 VLA_CENTER_HZ = 1.4e9
-_C = 299_792_458.0
 
 #: The paper's figure numbers of each kind of figure (Lindroos et al. 2015).
 _FLUX_FIGS, _STAMP_FIG, _PROFILE_FIGS, _SIZE_FIG, _NOISE_FIG, _FILTER_FIG = (
@@ -320,7 +320,7 @@ def _wavelength_m(workdir: Path, n: int) -> float:
                 ok = np.isfinite(m) & np.isfinite(k) & (k > 0)
                 if ok.any():
                     return float(np.median(m[ok] / (k[ok] * 1e3)))
-    return _C / VLA_CENTER_HZ
+    return SPEED_OF_LIGHT / VLA_CENTER_HZ
 
 
 def profile_edges(workdir: Path) -> np.ndarray:

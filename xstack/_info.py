@@ -333,7 +333,6 @@ def _ms_info(path: Path, datacolumn: str = "DATA") -> dict[str, Any]:
 # --------------------------------------------------------------------------- FITS images
 def _fits_info(path: Path) -> dict[str, Any]:
     from astropy.io import fits
-    from astropy.wcs import WCS, FITSFixedWarning
 
     from xstack.imaging.fitsio import (
         PBCUT_KEY,
@@ -341,6 +340,7 @@ def _fits_info(path: Path) -> dict[str, Any]:
         beam_from_header,
         pb_corrected_from_header,
         pb_file_from_header,
+        read_wcs,
     )
     from xstack.imaging.image import UVDIM_KEY
 
@@ -356,12 +356,7 @@ def _fits_info(path: Path) -> dict[str, Any]:
     except OSError as exc:
         raise XstackError(f"{path}: not a FITS image, MeasurementSet or xstack store ({exc})") \
             from None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FITSFixedWarning)
-        try:
-            wcs = WCS(header)
-        except Exception as exc:  # astropy raises several types for broken headers
-            raise XstackError(f"{path}: cannot read the WCS of the image ({exc})") from None
+    wcs = read_wcs(header, str(path))
     out: dict[str, Any] = {"path": str(path), "kind": "fits", "hdus": extensions,
                            "shape": [int(n) for n in data.shape[::-1]],
                            "bunit": str(header.get("BUNIT", "")).strip(),

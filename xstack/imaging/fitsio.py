@@ -146,12 +146,25 @@ def pb_file_from_header(header: fits.Header, image_path: str | os.PathLike | Non
     return p
 
 
+def read_wcs(header: fits.Header, where: str = "") -> WCS:
+    """The WCS of a FITS header (astropy, its header-fixing notes silenced), or one clear error
+    prefixed with ``where`` (the file's name)."""
+    import warnings
+
+    from astropy.wcs import FITSFixedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FITSFixedWarning)
+        try:
+            return WCS(header)
+        except Exception as exc:  # astropy raises several types for broken headers
+            prefix = f"{where}: " if where else ""
+            raise XstackError(f"{prefix}cannot read the WCS of the image ({exc})") from None
+
+
 def celestial_wcs(header: fits.Header) -> WCS:
     """The 2-D celestial WCS of a header (astropy), or a clear error."""
-    try:
-        wcs = WCS(header)
-    except Exception as exc:  # astropy raises several types for broken headers
-        raise XstackError(f"cannot read the WCS of the image ({exc})") from None
+    wcs = read_wcs(header)
     if not wcs.has_celestial:
         raise XstackError("image has no celestial WCS (need RA/Dec axes)")
     return wcs.celestial

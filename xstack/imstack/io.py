@@ -15,10 +15,11 @@ from typing import Any
 
 import numpy as np
 from astropy.io import fits
-from astropy.wcs import WCS, FITSFixedWarning
+from astropy.wcs import WCS
 
 from xstack.beams import BAND_TOP_KEY, TELESCOPE_DISH_DIAMETERS
 from xstack.errors import XstackError, XstackWarning
+from xstack.imaging.fitsio import read_wcs
 
 #: Physical dish diameters (m) of telescopes whose FITS TELESCOP we recognise (one home:
 #: :data:`xstack.beams.TELESCOPE_DISH_DIAMETERS`).
@@ -93,12 +94,7 @@ def _hdu_with_image(hdul: fits.HDUList, name: str) -> fits.ImageHDU | fits.Prima
 def image_from_hdu(hdu: fits.ImageHDU | fits.PrimaryHDU, name: str, path: Path | None = None) -> ImageInfo:
     """Build an :class:`ImageInfo` from an image HDU (see :func:`read_image`)."""
     header = hdu.header
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FITSFixedWarning)
-        try:
-            wcs = WCS(header)
-        except Exception as exc:  # astropy raises several types for malformed WCS
-            raise XstackError(f"{name}: cannot parse the WCS ({exc})") from None
+    wcs = read_wcs(header, name)
     if not wcs.has_celestial or wcs.wcs.lng < 0 or wcs.wcs.lat < 0:
         raise XstackError(f"{name}: the image has no celestial WCS (need RA/Dec axes, "
                           "e.g. CTYPE1='RA---SIN', CTYPE2='DEC--SIN')")

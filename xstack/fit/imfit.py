@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _options as _opt
 from xstack._vocabulary import FIT_MODELS, NOISE_CORRELATIONS
 from xstack.errors import OptionError, XstackError
-from xstack.fit import _options as _opt
 from xstack.fit.models import GAUSS_K, theta_and_error, theta_upper_limit
 from xstack.fit.result import FitResult
 

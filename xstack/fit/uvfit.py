@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _options as _opt
 from xstack._vocabulary import FIT_MODELS
 from xstack.coords import SPEED_OF_LIGHT
 from xstack.errors import NoDataError, OptionError, XstackError
-from xstack.fit import _options as _opt
 from xstack.fit._data import as_partitions, parse_uv_limit, stokes_i_blocks, uv_range_mask
 from xstack.fit.models import GAUSS_K, linear_initial_guess, theta_and_error, theta_upper_limit
 from xstack.fit.result import FitResult

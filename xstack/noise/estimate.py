@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _options as _opt
 from xstack import _vocabulary
 from xstack._antenna import MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions
@@ -227,10 +228,7 @@ class NoiseOptions:
                                      ("domain", self.domain, ("uv", "image")),
                                      ("weighting", self.weighting, WEIGHTINGS),
                                      ("engine", self.engine, ENGINES)):
-            if value not in allowed:
-                what = "noise method" if name == "method" else name
-                raise OptionError(f"unknown {what} {value!r} (use {', '.join(allowed)})",
-                                  option=name)
+            _opt.choice(name, value, allowed, what="noise method" if name == "method" else None)
         if self.domain == "image" and not (
                 self.region is None or (isinstance(self.region, str) and self.region.lower() == "hull")):
             raise OptionError("region: only the default (hull) is available for images so far; "

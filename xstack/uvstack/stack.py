@@ -26,6 +26,7 @@ import numpy as np
 import xarray as xr
 from astropy.table import Table
 
+from xstack import _options as _opt
 from xstack import _vocabulary
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions, grouped_partitions
@@ -200,15 +201,9 @@ class UvstackOptions:
     uv_hi: UVLimit | None = field(init=False, default=None)
 
     def __post_init__(self) -> None:
-        if self.weighting not in WEIGHTINGS:
-            raise _option_error("weighting", f"unknown weighting {self.weighting!r} (use "
-                                f"{', '.join(WEIGHTINGS)})")
-        if self.engine not in ENGINES:
-            raise _option_error("engine", f"unknown engine {self.engine!r} (use "
-                                f"{', '.join(ENGINES)})")
-        if self.smearing not in _smearing.MODES:
-            raise _option_error("smearing", f"unknown smearing {self.smearing!r} (use "
-                                f"{', '.join(_smearing.MODES)})")
+        _opt.choice("weighting", self.weighting, WEIGHTINGS)
+        _opt.choice("engine", self.engine, ENGINES)
+        _opt.choice("smearing", self.smearing, _smearing.MODES)
         try:
             cutoff = float(self.pb_cutoff)
         except (TypeError, ValueError):

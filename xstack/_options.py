@@ -1,5 +1,5 @@
-"""Validators shared by the fit stage's option dataclasses (:class:`~xstack.fit.imfit.ImageFitOptions`,
-:class:`~xstack.fit.uvfit.UvFitOptions`): each bad value is an :class:`OptionError` naming the
+"""Validators shared by the stages' option dataclasses (``UvstackOptions``, ``NoiseOptions``,
+``ImageFitOptions``, ``UvFitOptions``): each bad value is an :class:`OptionError` naming the
 parameter, raised when the options are built, i.e. before any data is read."""
 
 from __future__ import annotations
@@ -13,10 +13,12 @@ import numpy as np
 from xstack.errors import OptionError
 
 
-def choice(name: str, value: Any, allowed: tuple[str, ...]) -> str:
-    """``value`` if it is one of ``allowed``."""
+def choice(name: str, value: Any, allowed: tuple[str, ...], *, what: str | None = None) -> str:
+    """``value`` if it is one of ``allowed``; else an :class:`OptionError` for parameter
+    ``name`` that calls it ``what`` (default: ``name``)."""
     if not isinstance(value, str) or value not in allowed:
-        raise OptionError(f"unknown {name} {value!r} (use {', '.join(allowed)})", option=name)
+        raise OptionError(f"unknown {what or name} {value!r} (use {', '.join(allowed)})",
+                          option=name)
     return value
 
 

@@ -56,6 +56,19 @@ def test_json_keys_counts_and_truth(first):
             assert abs(t[k] - 6e-6) < 5 * t["expected_noise_jy"], (k, t[k])
 
 
+def test_expected_noise_is_that_of_the_stack_weights(first):
+    """The expected noise is the analytic noise (eq. 9) of the estimator that made the uv
+    flux: the stack's own 1/sigma_k^2 position weights, passed to estimate_noise as a
+    column. Two code paths: the stack's error bar is exact for its weights (it keeps the
+    correlation of positions through the dirty beam's sidelobes, ~1 % here, that eq. 9
+    leaves out)."""
+    out, _, _ = first
+    for n in TYPES:
+        for line in _lines(out, n):
+            assert line["expected_noise_jy"] == pytest.approx(line["uv_stack_flux_err_jy"],
+                                                              rel=0.03)
+
+
 def test_table_one_row_per_type(first):
     out, res, d = first
     table = res.table()

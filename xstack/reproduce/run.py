@@ -227,7 +227,9 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
                                        skip_outside=bool(proc.mosaic), **kw)
 
         ims = image_stack()
-        noise = xstack.estimate_noise(residual, targets, method="analytic", uvmin=uvmin)
+        noise_targets, noise_weighting = _stack_weighting(uv, targets, proc)
+        noise = xstack.estimate_noise(residual, noise_targets, method="analytic", uvmin=uvmin,
+                                      **noise_weighting)
         rec: dict[str, Any] = {
             "seed": seed, "true_flux_jy": true_flux, "n_targets": len(targets),
             "uv_stack_flux_jy": uv.flux_jy, "uv_stack_flux_err_jy": uv.flux_err_jy,
@@ -290,6 +292,26 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
         return json_ready(rec)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _stack_weighting(uv: Any, targets: Any, proc: Procedure) -> tuple[Any, dict[str, str]]:
+    """The targets and noise weighting that give ``estimate_noise`` the position weights
+    W_k the uv-stack used.
+
+    With ``sigma2`` weights on one pointing, W_k = 1/sigma_k^2 from the residual map: the
+    stack's own W_k (``uv.positions["weight_used"]``) are passed as a ``weight`` column, so the
+    expected noise is the analytic noise of the estimator that made the flux (eq. 9 with
+    these weights), not of the A^2-weighted one. Other weightings are passed by name.
+    """
+    if proc.uv_weighting != "sigma2":
+        return targets, {"weighting": proc.uv_weighting}
+    w = np.asarray(uv.positions["weight_used"], dtype=np.float64)
+    if w.ndim == 2:
+        # one pointing: every partition (spectral window) weighs a position alike
+        w = w.max(axis=1)
+    weighted = targets.copy()
+    weighted["weight"] = w
+    return weighted, {"weighting": "column"}
 
 
 def _pointing_names(store: Any) -> list[list[str]]:

@@ -98,7 +98,7 @@ class StackResult(Result):
     n_visibilities
         Visibilities (unflagged, selected polarizations, in uv range, weight > 0) in the flux.
     positions
-        The catalog with per-partition columns: ``used`` (n_partitions bool), ``weight``
+        The catalog with per-partition columns: ``used`` (n_partitions bool), ``weight_used``
         (W_k per partition), ``attenuation`` (A_k at the partition's mean frequency),
         ``n_pointings``; ``meta["partitions"]`` names the partitions in column order.
     uncovered

@@ -69,6 +69,17 @@ def test_expected_noise_is_that_of_the_stack_weights(first):
                                                               rel=0.03)
 
 
+def test_subpixel_image_flux_recorded(first):
+    """Every line of a non-fit type carries the sub-pixel aligned image stack of the same maps:
+    a different number from the nearest-pixel one, within the noise of the truth."""
+    out, _, _ = first
+    for n in TYPES:
+        for line in _lines(out, n):
+            sub = line["image_flux_subpixel_jy"]
+            assert math.isfinite(sub) and sub != line["image_flux_jy"]
+            assert abs(sub - 6e-6) < 5 * line["expected_noise_jy"]
+
+
 def test_table_one_row_per_type(first):
     out, res, d = first
     table = res.table()

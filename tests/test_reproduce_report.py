@@ -61,7 +61,8 @@ def run_dir(tmp_path_factory):
     # type 1: 6 µJy targets, 8 realisations; an earlier line at another scale is left out
     uv, im = 6e-6 + 0.4e-6 * rng.normal(size=8), 5.9e-6 + 0.5e-6 * rng.normal(size=8)
     old = _records(1, 1, 6e-6, [1.0], [1.0], rng, scale=0.5)
-    data[1] = _records(1, 8, 6e-6, uv, im, rng)
+    sub = im + 0.1e-6 + 0.02e-6 * rng.normal(size=8)
+    data[1] = _records(1, 8, 6e-6, uv, im, rng, image_flux_subpixel_jy=list(sub))
     d = _write(out, 1, data[1], lines_before=old)
     np.savez_compressed(d / "stamp_seed0.npz", stamp=1e-6 * rng.normal(size=(64, 64)),
                         psf=_gauss_psf(64, 10, 20), pixel_arcsec=np.array([0.25, 0.25]))
@@ -244,3 +245,28 @@ def test_cli_report_only(run_dir, tmp_path, capsys):
         assert len(err) == 1 and err[0].startswith("error: no realisations in")
     assert main(["reproduce", "--outdir", str(tmp_path)]) == 1
     assert "--type is required" in capsys.readouterr().err
+
+
+def _paired_row(text, n):
+    block = text.split("same realisations", 1)[1]
+    line = next(x for x in block.splitlines() if x.startswith(f"| {n} |"))
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_paired_table_is_plain_numpy(run_dir):
+    """image - uv per realisation, its standard error and the ratio of means, for the
+    nearest-pixel and the sub-pixel image stacks; types without sub-pixel fluxes say n/a."""
+    _, data, _, text = run_dir
+    recs = data[1]
+    uv = np.array([r["uv_flux_jy"] for r in recs])
+    for key, cols in (("image_flux_jy", slice(2, 5)), ("image_flux_subpixel_jy", slice(5, 8))):
+        im = np.array([r[key] for r in recs])
+        d = (im - uv) / 1e-6
+        se = d.std(ddof=1) / math.sqrt(d.size)
+        assert _paired_row(text, 1)[cols] == [str(d.size), f"{d.mean():+.3f} ({se:.3f})",
+                                              f"{im.mean() / uv.mean():.4f}"]
+    # type 7's failed uv fit (None) is left out of the pairs; no sub-pixel fluxes
+    uv7 = [r["uv_flux_jy"] for r in data[7]]
+    assert _paired_row(text, 7)[2] == str(sum(x is not None for x in uv7))
+    assert _paired_row(text, 7)[5:8] == ["0", "n/a", "n/a"]
+    assert _paired_row(text, 9)[1] == "mJy"

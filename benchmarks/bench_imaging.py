@@ -8,6 +8,8 @@ Run ``python benchmarks/bench_imaging.py [--time-step S] [--skip-big]``; prints 
    (30' field), dirty image + PSF with w-term, streamed from an in-memory partition in
    ~128 MB chunks.
 3. CLEAN (image plane, Högbom vs Clark) time vs number of components.
+4. ``--clark-update``: one Clark residual update at 4000 x 4000, scipy's ``fftconvolve`` (as
+   before) against :class:`xstack.imaging.clean.PsfConvolver` (the PSF's transform kept).
 """
 
 from __future__ import annotations
@@ -145,6 +147,57 @@ def bench_clean(rows: list[str], size: int, psf: np.ndarray | None) -> None:
                         f"{1e3 * dt / max(r.n_components, 1):.2f} |")
 
 
+def _fftconvolve_update(delta: np.ndarray, psf: np.ndarray) -> np.ndarray:
+    """Clark's residual update as xstack did it before the PSF transform was kept: scipy's
+    ``fftconvolve`` of the components' bounding box with the PSF (three FFTs, one thread)."""
+    from scipy.signal import fftconvolve
+
+    ny, nx = delta.shape
+    pcy, pcx = psf.shape[0] // 2, psf.shape[1] // 2
+    ys, xs = np.nonzero(delta)
+    y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    full = fftconvolve(delta[y0:y1, x0:x1], psf, mode="full")
+    out = np.zeros_like(delta)
+    oy, ox = pcy - y0, pcx - x0
+    ys0, ys1 = max(0, -oy), min(ny, full.shape[0] - oy)
+    xs0, xs1 = max(0, -ox), min(nx, full.shape[1] - ox)
+    out[ys0:ys1, xs0:xs1] = full[ys0 + oy:ys1 + oy, xs0 + ox:xs1 + ox]
+    return out
+
+
+def bench_clark_update(rows: list[str], size: int, repeats: int = 3) -> None:
+    """Time of one Clark residual update (the PSF summed at a round's components) on a
+    size x size image with a PSF of the same size: scipy fftconvolve of the bounding box
+    against :class:`xstack.imaging.clean.PsfConvolver` (PSF transform kept, all cores)."""
+    from xstack.imaging.clean import PsfConvolver
+
+    rng = np.random.default_rng(7)
+    psf = kernels.gaussian_image(size, size, 3.0, 2.5, 0.0) + 1e-3 * rng.normal(size=(size, size))
+    for n_comp, spread in ((10, 0.1), (200, 0.8)):
+        delta = np.zeros((size, size))
+        lo, hi = int(size * (0.5 - spread / 2)), int(size * (0.5 + spread / 2))
+        ys, xs = rng.integers(lo, hi, (2, n_comp))
+        delta[ys, xs] = rng.uniform(1e-4, 1e-2, n_comp)
+        t = time.perf_counter()
+        conv = PsfConvolver(psf, delta.shape)
+        t_setup = time.perf_counter() - t
+        times = {}
+        outs = {}
+        for name, fn in (("fftconvolve", lambda d: _fftconvolve_update(d, psf)),
+                         ("PsfConvolver", conv)):
+            best = math.inf
+            for _ in range(repeats):
+                t = time.perf_counter()
+                outs[name] = fn(delta)
+                best = min(best, time.perf_counter() - t)
+            times[name] = best
+        err = np.abs(outs["PsfConvolver"] - outs["fftconvolve"]).max() / np.abs(
+            outs["fftconvolve"]).max()
+        rows.append(f"| {size}x{size} | {n_comp} in {spread:.0%} of the field | "
+                    f"{times['fftconvolve']:.2f} | {times['PsfConvolver']:.2f} | {t_setup:.2f} | "
+                    f"{times['fftconvolve'] / times['PsfConvolver']:.1f} | {err:.1e} |")
+
+
 def bench_clean_data(rows: list[str], time_step: float, size: int, algorithm: str,
                      nsigma: float) -> None:
     """Paper type 3 bright sources (10 x 5-10 mJy, sigma = 10 mJy/vis): CLEAN to nsigma."""
@@ -192,7 +245,17 @@ def main() -> None:
                         help="only run the major/minor-cycle CLEAN of a type-3 scene")
     parser.add_argument("--algorithm", default="clark")
     parser.add_argument("--nsigma", type=float, default=5.0, help="CLEAN threshold / thermal")
+    parser.add_argument("--clark-update", action="store_true",
+                        help="only time Clark's residual update (old fftconvolve vs kept PSF "
+                             "transform)")
     args = parser.parse_args()
+    if args.clark_update:
+        rows = ["## Clark residual update: fftconvolve vs PsfConvolver\n",
+                "| image | components | fftconvolve (s) | PsfConvolver (s) | its setup, once (s) "
+                "| speed-up | max difference / max |", "|---|---|---|---|---|---|---|"]
+        bench_clark_update(rows, args.size)
+        print("\n".join(rows))
+        return
     if args.clean_data:
         rows = ["## Major/minor-cycle CLEAN of paper type 3 bright sources\n",
                 "| image | Mvis | algorithm | threshold (sigma) | components | major cycles | time (s) "

@@ -186,3 +186,32 @@ def test_restore_flux_scale():
     out = restore(model, np.zeros_like(model), (5.0, 3.0, 10.0))
     assert out.max() == pytest.approx(2.0)
     assert out[30, 40] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("image_shape, psf_shape", [((64, 80), (64, 80)), ((50, 41), (101, 83)),
+                                                     ((33, 32), (16, 17)), ((20, 21), (61, 60))])
+def test_psf_convolver_is_the_sum_of_shifted_psfs(rng, image_shape, psf_shape):
+    """Clark's residual update (FFT with the PSF's transform kept) against plain numpy: a PSF
+    added at every component, cut at the image edge; components on the edges and corners,
+    PSFs larger (up to three times) and smaller than the image, odd and even sizes."""
+    from xstack.imaging.clean import PsfConvolver
+
+    ny, nx = image_shape
+    psf = rng.normal(size=psf_shape)
+    delta = np.zeros(image_shape)
+    for y, x in [(0, 0), (ny - 1, nx - 1), (0, nx - 1), (ny // 2, nx // 3)]:
+        delta[y, x] = rng.normal()
+    expected = np.zeros(image_shape)
+    pcy, pcx = psf_shape[0] // 2, psf_shape[1] // 2
+    for y, x in zip(*np.nonzero(delta)):
+        for py in range(psf_shape[0]):
+            for px in range(psf_shape[1]):
+                yy, xx = y + py - pcy, x + px - pcx
+                if 0 <= yy < ny and 0 <= xx < nx:
+                    expected[yy, xx] += delta[y, x] * psf[py, px]
+    conv = PsfConvolver(psf, image_shape)
+    assert np.allclose(conv(delta), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    # the transform is reused: a second delta through the same convolver
+    assert np.allclose(conv(2.0 * delta), 2.0 * expected, rtol=0,
+                       atol=1e-12 * np.abs(expected).max())
+    assert not np.any(conv(np.zeros(image_shape)))

@@ -9,7 +9,11 @@ this measures, each in a fresh child process so peak memory is that run's alone:
 * ``xstack.convert_ms`` of the same MS with default chunks (~128 MB);
 * the output floor: writing as many bytes as the store holds with ``numpy.tofile`` in
   128 MB files (convert cannot beat read + write);
-* optionally ``xstack.export_ms`` of the store back to an MS (``--export``).
+* optionally ``xstack.export_ms`` of the store back to an MS (``--export``);
+* optionally xradio's converter (``--xradio``: ``convert_msv2_to_processing_set`` of xradio
+  1.3.0, the test extra, with its defaults) of the same MS in the same run, and the ratios
+  xstack / xradio of wall time, CPU time and peak memory, both within the call (imports
+  before the clock) and for the whole process (imports included: what a user waits for).
 
 Wall time, CPU time (user + system, all threads), throughput (MB of MS per second of wall
 time, visibilities per second) and peak resident memory (``ru_maxrss`` of the child) are
@@ -84,6 +88,31 @@ print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() -
                   "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
+_CONVERT_PROCESS = """
+import time
+t_start = time.perf_counter()
+import json, resource, sys
+from xstack.io.convert import convert_ms
+t0, c0 = time.perf_counter(), time.process_time()
+convert_ms(sys.argv[1], sys.argv[2], overwrite=True)
+print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+                  "process_wall": time.perf_counter() - t_start,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+_XRADIO = """
+import time
+t_start = time.perf_counter()
+import json, resource, sys, warnings
+warnings.simplefilter("ignore")
+from xradio.measurement_set import convert_msv2_to_processing_set
+t0, c0 = time.perf_counter(), time.process_time()
+convert_msv2_to_processing_set(sys.argv[1], sys.argv[2], persistence_mode="w")
+print(json.dumps({"wall": time.perf_counter() - t0, "cpu": time.process_time() - c0,
+                  "process_wall": time.perf_counter() - t_start,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
 _EXPORT = """
 import json, resource, sys, time
 import dask.array, xarray, zarr, casacore.tables
@@ -119,6 +148,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=1, help="runs per measurement (the fastest is kept)")
     parser.add_argument("--export", action="store_true", help="also time export_ms back to an MS")
     parser.add_argument("--keep", action="store_true", help="keep the generated MSs and stores")
+    parser.add_argument("--xradio", action="store_true",
+                        help="also run xradio's converter on the same MSs (xradio[casacore])")
     args = parser.parse_args()
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="xstack-bench-"))
@@ -146,6 +177,15 @@ def main() -> None:
             shutil.rmtree(raw, ignore_errors=True)
             if args.export:
                 runs["export"] = _run(_EXPORT, str(store), str(work / f"bench_{size:g}GB.out.ms"))
+            if args.xradio:
+                # the two converters alternate in the same run, each a fresh process
+                xr_store = work / f"bench_{size:g}GB.ps.zarr"
+                shutil.rmtree(xr_store, ignore_errors=True)
+                runs["xradio"] = _run(_XRADIO, str(ms), str(xr_store))
+                runs["xradio_store"] = {"wall": 0.0, "mb": _du(xr_store) / 1e6}
+                shutil.rmtree(xr_store, ignore_errors=True)
+                shutil.rmtree(store, ignore_errors=True)
+                runs["xstack_process"] = _run(_CONVERT_PROCESS, str(ms), str(store))
             for k, v in runs.items():
                 if k not in best or v["wall"] < best[k]["wall"]:
                     best[k] = v
@@ -153,7 +193,8 @@ def main() -> None:
         n_vis = rows * N_CHAN * len(POLS)
         res = {"size_gb": size, "ms_mb": ms_bytes / 1e6, "store_mb": _du(store) / 1e6, "rows": rows,
                "n_vis": n_vis,
-               **{f"{k}_{m}": v[m] for k, v in best.items() for m in ("wall", "cpu", "rss_mb")}}
+               **{f"{k}_{m}": v[m] for k, v in best.items()
+                  for m in ("wall", "cpu", "rss_mb", "process_wall", "mb") if m in v}}
         results.append(res)
         print(json.dumps(res), file=sys.stderr, flush=True)
         if not args.keep:
@@ -185,6 +226,21 @@ def main() -> None:
         for r in results:
             print(f"| {r['ms_mb'] / 1e3:.2f} GB | {r['export_wall']:.2f} / {r['export_cpu']:.2f} | "
                   f"{r['ms_mb'] / r['export_wall']:.0f} | {r['export_rss_mb']:.0f} |")
+    if args.xradio:
+        print("\n| MS size | xstack convert wall / CPU (s) | xradio wall / CPU (s) | xstack / xradio "
+              "wall | xstack / xradio CPU | process wall, imports included: xstack / xradio (s) "
+              "| ratio | peak RSS xstack / xradio (MB) | ratio | store size xstack / xradio (MB) |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        for r in results:
+            print(f"| {r['ms_mb'] / 1e3:.2f} GB | {r['convert_wall']:.2f} / {r['convert_cpu']:.2f} | "
+                  f"{r['xradio_wall']:.2f} / {r['xradio_cpu']:.2f} | "
+                  f"{r['convert_wall'] / r['xradio_wall']:.2f} | "
+                  f"{r['convert_cpu'] / r['xradio_cpu']:.2f} | "
+                  f"{r['xstack_process_process_wall']:.2f} / {r['xradio_process_wall']:.2f} | "
+                  f"{r['xstack_process_process_wall'] / r['xradio_process_wall']:.2f} | "
+                  f"{r['xstack_process_rss_mb']:.0f} / {r['xradio_rss_mb']:.0f} | "
+                  f"{r['xstack_process_rss_mb'] / r['xradio_rss_mb']:.2f} | "
+                  f"{r['store_mb']:.0f} / {r['xradio_store_mb']:.0f} |")
     if not args.keep and args.workdir is None:
         shutil.rmtree(work, ignore_errors=True)
 

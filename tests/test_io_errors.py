@@ -159,8 +159,9 @@ def test_export_not_a_store(tmp_path, good, capsys):
     plain = tmp_path / "plain.zarr"
     g = zarr.open_group(str(plain), mode="w", zarr_format=3)
     g.create_array("x", shape=(3,), dtype="f8")
-    _fails(export_ms, (plain, out), "not an xstack store", tmp_path)
-    _cli_fails(["export", str(plain), str(out)], "not an xstack store", capsys, tmp_path)
+    _fails(export_ms, (plain, out), "neither an xstack store nor an MSv4", tmp_path)
+    _cli_fails(["export", str(plain), str(out)], "neither an xstack store nor an MSv4", capsys,
+               tmp_path)
 
 
 def test_export_corrupt_store(tmp_path, good, capsys):

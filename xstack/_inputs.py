@@ -19,6 +19,7 @@ Every stage that takes stacking positions builds a :class:`Positions` with
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -45,7 +46,8 @@ def open_input(path: str | os.PathLike, *, allow_ms: bool = True,
                prefix: str = "xstack-input-") -> xr.DataTree:
     """Open a store path, or convert a MeasurementSet path lazily, as a DataTree.
 
-    A MeasurementSet is converted into a temporary directory named ``<prefix>*``.
+    A MeasurementSet is converted into a temporary directory named ``<prefix>*``, said on
+    the ``xstack`` logger (INFO; the command line prints it).
 
     Raises
     ------
@@ -66,6 +68,10 @@ def open_input(path: str | os.PathLike, *, allow_ms: bool = True,
 
         owner = TemporaryStoreOwner(prefix=prefix)
         store = convert_ms(path, Path(owner.path) / "converted.zarr")
+        # not hidden: the user learns where the data went and how to keep them
+        logging.getLogger("xstack").info(
+            "%s: a MeasurementSet, converted to the MSv4 store %s for this run (removed "
+            "afterwards; convert it once with xstack convert to reuse it)", path, store)
         return tie_lifetime(open_store(store), owner)
     return open_store(path)
 

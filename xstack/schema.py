@@ -1,8 +1,10 @@
-"""The xstack data model: zarr (v3) "processing sets" opened as :class:`xarray.DataTree`.
+"""The xstack data model: zarr (v3) MSv4 processing sets opened as :class:`xarray.DataTree`.
 
 One store holds one dataset. Its root group carries the schema attributes; each child group
-is one *partition* (spectral window x field, and scan where needed), an :class:`xarray.Dataset`
-with MSv4 names::
+is one *partition* (spectral window x field, and scan where needed). On disk a partition is
+an MSv4 ``VisibilityXds`` with its ``antenna_xds`` and field-and-source children
+(:mod:`xstack.msv4` translates); the stages see it as one :class:`xarray.Dataset`, the
+*internal view*::
 
     VISIBILITY  (time, baseline_id, frequency, polarization)  complex64 | complex128, Jy
     WEIGHT      (time, baseline_id, frequency, polarization)  float32, 1/Jy^2
@@ -20,6 +22,7 @@ ever pickled, so opening a store from elsewhere runs no code.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -33,7 +36,9 @@ from xstack._atomic import atomic_output
 from xstack.errors import SchemaError, XstackError
 
 SCHEMA_NAME = "xstack.processing_set"
-SCHEMA_VERSION = "1.0"
+#: Version of xstack's store layout. 2.x: MSv4 processing sets (:mod:`xstack.msv4`);
+#: 1.x (xstack before 0.2): xstack's own layout, no longer read.
+SCHEMA_VERSION = "2.0"
 KINDS = ("processing_set", "stacked")
 
 VIS_DIMS = ("time", "baseline_id", "frequency", "polarization")
@@ -233,15 +238,42 @@ def validate_partition(ds: xr.Dataset, name: str = "partition") -> xr.Dataset:
     return ds
 
 
-def iter_partitions(tree: xr.DataTree) -> Iterator[tuple[str, xr.Dataset]]:
-    """Yield ``(name, Dataset)`` for every partition (group holding VISIBILITY) of a store.
+def iter_partitions(tree: xr.DataTree, data_group: str | None = None
+                    ) -> Iterator[tuple[str, xr.Dataset]]:
+    """Yield ``(name, Dataset)`` for every partition of a store, as xstack's stages see it.
 
-    Partitions come in sorted name order, whatever order the store's directory listing
-    gives, so that results (and anything seeded per partition) are reproducible.
+    MSv4 partitions (``type = "visibility"``: every store xstack writes, and those of other
+    MSv4 writers such as xradio's converter) are translated to the internal view by
+    :func:`xstack.msv4.decode_partition` (a partition with several fields over time becomes
+    one per field); other groups holding ``VISIBILITY`` (trees built in memory from internal
+    partitions) are yielded as they are. Partitions come in sorted name order, whatever
+    order the store's directory listing gives, so that results (and anything seeded per
+    partition) are reproducible.
+
+    Parameters
+    ----------
+    tree
+        The opened store.
+    data_group
+        MSv4 data group whose correlated data are ``VISIBILITY`` (``base``, ``corrected``...);
+        default: ``base``, else each partition's first.
     """
-    nodes = [node for node in tree.subtree if "VISIBILITY" in node.ds.variables]
-    for node in sorted(nodes, key=lambda node: node.path):
-        yield (node.path.strip("/") or "/"), node.to_dataset()
+    from xstack.msv4 import decode_partition, is_msv4_partition
+
+    nodes = sorted((node for node in tree.subtree
+                    if is_msv4_partition(node) or "VISIBILITY" in node.ds.variables),
+                   key=lambda node: node.path)
+    spw_names = sorted({str(node["frequency"].attrs.get("spectral_window_name", ""))
+                        for node in nodes if is_msv4_partition(node)
+                        and not isinstance(node.attrs.get("xstack"), Mapping)})
+    spw_ids = {n: i for i, n in enumerate(spw_names)}
+    for node in nodes:
+        name = node.path.strip("/") or "/"
+        if is_msv4_partition(node):
+            yield from decode_partition(node, name, data_group=data_group,
+                                        spectral_window_ids=spw_ids)
+        else:
+            yield name, node.to_dataset()
 
 
 def _read_root_attrs(path: Path) -> dict[str, Any]:
@@ -352,12 +384,20 @@ def validate_store(path: str | os.PathLike) -> dict[str, Any]:
         raise XstackError(f"{path}: no such store")
     attrs = _read_root_attrs(path)
     if attrs.get("xstack_schema") != SCHEMA_NAME:
-        raise SchemaError(f"{path}: not an xstack store (no xstack_schema attribute)")
+        if attrs.get("type") == "processing_set":
+            # an MSv4 processing set of another writer (xradio's converter): its partitions
+            # are checked as they are read (xstack.msv4.decode_partition)
+            check_array_metadata(path)
+            return {**attrs, "xstack_kind": "processing_set", "xstack_foreign": True}
+        raise SchemaError(f"{path}: neither an xstack store nor an MSv4 processing set (no "
+                          "xstack_schema or type attribute)")
     if not attrs.get("xstack_complete", False):
         raise SchemaError(f"{path}: incomplete store (an interrupted write?)")
     version = str(attrs.get("xstack_schema_version", ""))
     if version.split(".")[0] != SCHEMA_VERSION.split(".")[0]:
-        raise SchemaError(f"{path}: schema version {version!r} is not supported")
+        raise SchemaError(f"{path}: written in xstack's store layout {version!r}, which this "
+                          f"xstack no longer reads (it reads {SCHEMA_VERSION}, MSv4 processing "
+                          "sets): convert the MeasurementSet again (or simulate again)")
     if attrs.get("xstack_kind") not in KINDS:
         raise SchemaError(f"{path}: unknown store kind {attrs.get('xstack_kind')!r}")
     check_array_metadata(path)
@@ -422,15 +462,26 @@ def read_chunk(array: Any, key: Any, asarray: bool = True, lock: Any = None) -> 
                                 + (f"chunk file {chunk}; " if chunk else "") + f"{text})") from None
 
 
-def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None) -> xr.DataTree:
-    """Open an xstack store lazily (dask-backed) as an :class:`xarray.DataTree`.
+def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None,
+               data_group: str | None = None) -> xr.DataTree:
+    """Open an xstack store or any MSv4 processing set lazily (dask-backed) as an
+    :class:`xarray.DataTree`.
 
     Parameters
     ----------
     path
-        The ``.zarr`` directory written by ``xstack convert``, ``simulate``, ``uvstack``...
+        The ``.zarr`` directory written by ``xstack convert``, ``simulate``, ``uvstack``...,
+        or an MSv4 processing set written by another tool (xradio's converter).
     chunks
         Optional dask chunks per dimension; default: the chunks on disk.
+    data_group
+        MSv4 data group checked here (see :func:`iter_partitions`).
+
+    Returns
+    -------
+    xarray.DataTree
+        One child per partition in xstack's internal view (:mod:`xstack.msv4`: the antenna
+        table, phase center and times as the stages use them), root attributes as stored.
 
     Raises
     ------
@@ -443,18 +494,63 @@ def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None)
     try:
         # every chunk is read through read_chunk: a chunk that does not decode becomes one
         # XstackError naming the store, variable and chunk, wherever it is computed
-        tree = xr.open_datatree(path, engine="zarr", chunks=dict(chunks or {}),
-                                consolidated=False, zarr_format=3,
-                                from_array_kwargs={"getitem": read_chunk})
+        # the metadata of every node, not the consolidated copy at the root (written for
+        # other readers, e.g. xradio): it is what check_array_metadata has just read, and a
+        # store damaged since it was written shows here, not when a chunk is computed
+        with quiet_zarr_warnings():
+            tree = xr.open_datatree(path, engine="zarr", chunks=dict(chunks or {}),
+                                    consolidated=False, zarr_format=3,
+                                    from_array_kwargs={"getitem": read_chunk})
     except Exception as exc:  # zarr/xarray raise many types for damaged stores
         raise SchemaError(f"{path}: cannot be opened as a zarr store ({exc})") from None
-    n = 0
-    for name, ds in iter_partitions(tree):
-        validate_partition(ds, f"{path}/{name}")
-        n += 1
-    if n == 0:
+    parts = {}
+    for name, ds in iter_partitions(tree, data_group):
+        parts[name] = validate_partition(ds, f"{path}/{name}")
+    if not parts:
         raise SchemaError(f"{path}: store holds no partitions")
-    return tree
+    # the stages' view: one node per partition as xstack.msv4 translates it (several per
+    # MSv4 partition that holds several fields), the store's root attributes
+    view = xr.DataTree.from_dict(parts)
+    view.attrs = dict(tree.attrs)
+    view.encoding = {"source": str(path)}
+    return view
+
+
+@contextlib.contextmanager
+def quiet_zarr_warnings() -> Iterator[None]:
+    """A context in which zarr's notes on what MSv4 stores use are silent: fixed-width
+    unicode strings (``<U``, MSv4's strings) and consolidated metadata are "not in the zarr v3
+    specification" yet; xradio writes and reads both, and so does xstack, on purpose."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"The data type \(FixedLengthUTF32")
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part")
+        yield
+
+
+def partition_nodes(partitions: Mapping[str, xr.Dataset]) -> dict[str, xr.Dataset]:
+    """The zarr groups (path -> Dataset) of internal partitions written as MSv4: each
+    partition's VisibilityXds first, then its child nodes (:func:`xstack.msv4.encode_partition`)."""
+    from xstack import __version__
+    from xstack.msv4 import encode_partition
+
+    nodes: dict[str, xr.Dataset] = {}
+    for name, ds in partitions.items():
+        for sub, node in encode_partition(ds, creator_version=__version__).items():
+            nodes[f"{name}/{sub}" if sub else name] = node
+    return nodes
+
+
+def finish_store(path: str | os.PathLike) -> None:
+    """Mark a store complete and consolidate its metadata (the last step of every writer,
+    before the rename into place): the completion flag is then in the consolidated copy too."""
+    import zarr
+
+    root = zarr.open_group(str(path), mode="r+", zarr_format=3)
+    root.attrs["xstack_complete"] = True
+    with quiet_zarr_warnings():
+        zarr.consolidate_metadata(str(path), zarr_format=3)
 
 
 def new_store_attrs(partitions: Mapping[str, xr.Dataset], kind: str,
@@ -471,6 +567,7 @@ def new_store_attrs(partitions: Mapping[str, xr.Dataset], kind: str,
     for name, ds in partitions.items():
         validate_partition(ds, name)
     return {
+        "type": "processing_set",
         "xstack_schema": SCHEMA_NAME,
         "xstack_schema_version": SCHEMA_VERSION,
         "xstack_kind": kind,
@@ -533,10 +630,12 @@ def write_store(
     with atomic_output(path, overwrite=overwrite) as tmp:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
         root.attrs.update(root_attrs)
-        # stale encodings (chunks of a source store) must not override dask chunks
-        writes = [ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
-                                             consolidated=False, compute=False)
-                  for name, ds in partitions.items()]
+        # stale encodings (chunks of a source store) must not override dask chunks; a
+        # partition's own group is written before its children (mode "w" clears a group)
+        with quiet_zarr_warnings():
+            writes = [ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
+                                                 consolidated=False, compute=False)
+                      for name, ds in partition_nodes(partitions).items()]
         # an own thread pool, shut down before a failure leaves this block: no task still
         # running may write into the temporary after atomic_output has removed it
         pool = ThreadPoolExecutor(dask.config.get("num_workers", None) or os.cpu_count() or 1)
@@ -548,5 +647,5 @@ def write_store(
         root = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
         if final_attrs is not None:
             root.attrs.update(dict(final_attrs(tuple(results[len(writes):]))))
-        root.attrs["xstack_complete"] = True
+        finish_store(tmp)
     return Path(path)

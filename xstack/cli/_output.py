@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import math
 import sys
 import time
@@ -96,15 +97,32 @@ def session(args: argparse.Namespace) -> Iterator[None]:
         state.own_log = True
     _stack.append(state)
     previous = _progress.set_allowed(state.progress)
+    # what the library says on its logger (e.g. where a MeasurementSet was converted to)
+    # is a message of this run: on stderr unless -q, and in --log
+    handler = _SayHandler()
+    library_log = logging.getLogger("xstack")
+    library_log.addHandler(handler)
+    previous_level = library_log.level
+    library_log.setLevel(logging.INFO)
     try:
         _to_log("$ xstack " + " ".join(getattr(args, "_argv", []) or []))
         yield
         detail(f"xstack {getattr(args, 'command', '')}: done in {seconds(elapsed())}")
     finally:
+        library_log.removeHandler(handler)
+        library_log.setLevel(previous_level)
         _progress.set_allowed(previous)
         _stack.pop()
         if state.own_log and state.log is not None:
             state.log.close()
+
+
+class _SayHandler(logging.Handler):
+    """Library log records (INFO and above, never warnings: those are ``warning:`` lines
+    through :mod:`warnings`) as :func:`say` messages."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        say(" ".join(record.getMessage().split()))
 
 
 def _isatty(stream: Any) -> bool:

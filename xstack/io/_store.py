@@ -20,7 +20,7 @@ import numpy as np
 import xarray as xr
 
 from xstack._atomic import atomic_output
-from xstack.schema import new_store_attrs
+from xstack.schema import finish_store, new_store_attrs, partition_nodes, quiet_zarr_warnings
 
 _BLOSC_SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
 
@@ -56,18 +56,18 @@ def region_store(
         memory = zarr.storage.MemoryStore(store_dict=skeleton)
         root = zarr.open_group(memory, mode="w", zarr_format=3)
         root.attrs.update(root_attrs)
-        for name, ds in partitions.items():
-            enc = {k: dict(v) for k, v in (encoding or {}).items() if k in ds.variables}
-            ds.drop_encoding().to_zarr(memory, group=name, mode="w", zarr_format=3,
-                                       consolidated=False, compute=False, encoding=enc)
+        with quiet_zarr_warnings():
+            for name, ds in partition_nodes(partitions).items():
+                enc = {k: dict(v) for k, v in (encoding or {}).items() if k in ds.variables}
+                ds.drop_encoding().to_zarr(memory, group=name, mode="w", zarr_format=3,
+                                           consolidated=False, compute=False, encoding=enc)
         tmp.mkdir()
         for key, value in skeleton.items():
             file = tmp / key
             file.parent.mkdir(parents=True, exist_ok=True)
             file.write_bytes(value.to_bytes())
         yield zarr.open_group(str(tmp), mode="r+", zarr_format=3)
-        root = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
-        root.attrs["xstack_complete"] = True
+        finish_store(tmp)
     return Path(path)
 
 

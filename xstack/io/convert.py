@@ -33,6 +33,7 @@ from xstack._atomic import check_output
 from xstack.errors import XstackError
 from xstack.io import msread
 from xstack.io._store import ChunkFiles, region_store
+from xstack.msv4 import UNIX_EPOCH_MJD_S
 from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name
 
 #: Visibility columns accepted by ``datacolumn`` (any other complex array column also works).
@@ -248,7 +249,8 @@ def block_spec(path: str, plan: PartitionPlan, meta: msread.MSMeta, column: str,
         n_pols=len(meta.pol_names[int(meta.ddid_pol[plan.ddid])]), vis_dtype=vis_dtype,
         weight_source=wsrc, flag_defined=defined("FLAG"),
         has_flag_row=msread.column_info(path, "FLAG_ROW") is not None,
-        has_centroid=defined("TIME_CENTROID"), has_exposure=defined("EXPOSURE"))
+        has_centroid=defined("TIME_CENTROID"), has_exposure=defined("EXPOSURE"),
+        time_origin=UNIX_EPOCH_MJD_S)
 
 
 def chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,

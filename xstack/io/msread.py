@@ -249,6 +249,9 @@ class BlockSpec:
     has_flag_row: bool
     has_centroid: bool
     has_exposure: bool
+    #: Subtracted from the MS's times (MJD seconds) in TIME_CENTROID: the store's time origin
+    #: (:data:`xstack.msv4.UNIX_EPOCH_MJD_S` for MSv4's Unix seconds).
+    time_origin: float = 0.0
 
 
 BLOCK_VARS = ("VISIBILITY", "WEIGHT", "FLAG", "UVW", "TIME_CENTROID", "EFFECTIVE_INTEGRATION_TIME")
@@ -332,7 +335,7 @@ def read_block(spec: BlockSpec, rows: np.ndarray, t_index: np.ndarray, b_index: 
         flag[...] = True
         uvw[...] = 0.0
         exposure[...] = 0.0
-    centroid[...] = np.repeat(np.asarray(times, np.float64), n_baseline)
+    centroid[...] = np.repeat(np.asarray(times, np.float64) - spec.time_origin, n_baseline)
     if not spec.has_exposure:
         exposure[...] = 0.0
     out = {"VISIBILITY": (n_time, n_baseline, nc, npol), "WEIGHT": (n_time, n_baseline, nc, npol),
@@ -433,7 +436,7 @@ def _read_pass(spec: BlockSpec, rows: np.ndarray, cell_index: np.ndarray, batch:
         elif spec.weight_source == "NONE":
             weight[c] = 1.0
         if spec.has_centroid:
-            centroid[c] = got["TIME_CENTROID"]
+            centroid[c] = got["TIME_CENTROID"] - spec.time_origin
         if spec.has_exposure:
             exposure[c] = got["EXPOSURE"]
         if direct and on_batch is not None and any(dest is vis for _, dest in big):

@@ -281,3 +281,24 @@ def test_measurement_set_input_says_where_it_was_converted(mss, tmp_path, capsys
     assert main(["uvstack", str(ms), str(tmp_path / "cat.ecsv"), str(tmp_path / "b.zarr"),
                  "--json", "-q"]) == 0
     assert "converted to" not in capsys.readouterr().err
+
+
+def test_cli_data_group(converted, mss, tmp_path, capsys):
+    """`xstack uvstack --data-group corrected` stacks xradio's VISIBILITY_CORRECTED, as the
+    API does; an unknown group and a MeasurementSet are one-line errors."""
+    from xstack.cli import main
+
+    _, theirs = converted["columns"]
+    cat = _catalog(theirs)
+    cat.write(tmp_path / "cat.ecsv")
+    args = [str(theirs), str(tmp_path / "cat.ecsv")]
+    assert main(["uvstack", *args, str(tmp_path / "a.zarr"), "--data-group", "corrected",
+                 "--json"]) == 0
+    flux = json.loads(capsys.readouterr().out)["flux_jy"]
+    assert flux == pytest.approx(
+        xstack.stack_uv(open_store(theirs, data_group="corrected"), cat).flux_jy, rel=1e-12)
+    assert main(["uvstack", *args, str(tmp_path / "b.zarr"), "--data-group", "model"]) == 1
+    assert "no data group 'model'" in capsys.readouterr().err
+    assert main(["uvstack", str(mss["columns"]), str(tmp_path / "cat.ecsv"),
+                 str(tmp_path / "c.zarr"), "--data-group", "corrected"]) == 1
+    assert "has no data groups" in capsys.readouterr().err

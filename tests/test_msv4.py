@@ -115,6 +115,20 @@ def test_every_command_writes_valid_msv4(tmp_path):
         assert msv4_problems(store) == [], store
 
 
+@pytest.mark.parametrize("name", ["mosaic", "spws", "irregular"])
+def test_subtract_and_uvstack_of_converted_stores_are_valid_msv4(converted, name, tmp_path):
+    """subtract and uvstack outputs of a mosaic (one stacked partition per field), of several
+    spectral windows and of an irregular time grid."""
+    store, _ = converted[name]
+    cat = _catalog(store, n=4)
+    bright = cat[:2].copy()
+    bright["flux"] = [0.5, 0.2]
+    sub = xstack.subtract(store, bright, tmp_path / "sub.zarr")
+    xstack.stack_uv(sub, cat, out=tmp_path / "stack.zarr")
+    for out in (tmp_path / "sub.zarr", tmp_path / "stack.zarr"):
+        assert msv4_problems(out) == [], out
+
+
 @pytest.mark.parametrize("name", sorted(TEST_MS))
 def test_xradio_store_stacks_as_xstack_store(converted, name):
     """Same flux to 1e-9 from xradio's conversion and xstack's (the mosaic: all fields in

@@ -316,3 +316,17 @@ def test_cli_data_group(converted, mss, tmp_path, capsys):
     assert main(["uvstack", str(mss["columns"]), str(tmp_path / "cat.ecsv"),
                  str(tmp_path / "c.zarr"), "--data-group", "corrected"]) == 1
     assert "has no data groups" in capsys.readouterr().err
+
+
+def test_info_names_the_writer_and_data_groups(converted, capsys):
+    from xstack.cli import main
+
+    ours, theirs = converted["columns"]
+    assert main(["info", str(theirs), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["format"] == "MSv4 processing set"
+    assert d["written_by"] == ["xradio 1.3.0"]
+    assert {"base", "corrected"} <= set(d["data_groups"])
+    assert main(["info", str(ours), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["written_by"] == [f"xstack {xstack.__version__}"] and d["data_groups"] == ["base"]

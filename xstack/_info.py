@@ -152,6 +152,29 @@ def _finish(out: dict[str, Any], tally: _Tally, name: str) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- stores
+def _msv4_info(path: Path) -> dict[str, Any]:
+    """The MSv4 writer and data groups of a store (from its partitions' metadata)."""
+    import json
+
+    writers, groups = set(), []
+    for meta in sorted(path.glob("*/zarr.json")):
+        try:
+            attrs = json.loads(meta.read_text()).get("attributes", {}) or {}
+        except (OSError, ValueError):
+            continue
+        if attrs.get("type") != "visibility":
+            continue
+        creator = attrs.get("creator") or {}
+        if isinstance(creator, dict):
+            writers.add(" ".join(str(creator.get(k, "")) for k in ("software_name", "version")
+                                 ).strip())
+        for g in attrs.get("data_groups") or {}:
+            if g not in groups:
+                groups.append(str(g))
+    return {"format": "MSv4 processing set", "written_by": sorted(w for w in writers if w),
+            "data_groups": groups}
+
+
 def _store_info(path: Path) -> dict[str, Any]:
     from xstack._select import autocorrelation_mask, parallel_hand_mask
     from xstack.schema import iter_partitions, open_store
@@ -223,6 +246,7 @@ def _store_info(path: Path) -> dict[str, Any]:
     out: dict[str, Any] = {
         "path": str(path), "kind": "store",
         "store_kind": str(tree.attrs.get("xstack_kind", "")),
+        **_msv4_info(path),
         "telescope": ",".join(sorted(telescopes)),
         "fields": [fields[k] for k in sorted(fields)],
         "spectral_windows": [spws[k] for k in sorted(spws)],

@@ -44,6 +44,10 @@ def data_lines(d: dict[str, Any]) -> list[str]:
     """Human-readable lines for an MS or store summary."""
     kind = "MeasurementSet" if d["kind"] == "ms" else f"store ({d.get('store_kind') or 'zarr'})"
     out = [f"{d['path']}: {kind}, telescope {d['telescope']}"]
+    if d.get("format"):
+        out.append(f"format     {d['format']}"
+                   + (f", written by {', '.join(d['written_by'])}" if d.get("written_by") else "")
+                   + (f"; data groups {', '.join(d['data_groups'])}" if d.get("data_groups") else ""))
     t = d["time"]
     if t["start_utc"]:
         out.append(f"time       {t['start_utc']} - {t['end_utc']} UTC ({_fmt_s(t['duration_s'])}), "

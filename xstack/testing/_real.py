@@ -15,6 +15,9 @@ REAL_MS = {
              "X5707_1spw_1scan_10chan_1time_1bl_noatm.ms"),
     "ovro-lwa": ("2018-03-21-01_26_33_0004384620257280_000000_downselected.ms",
                  "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"),
+    "mwa": ("1090008640_birli_pyuvdata.ms", "1090008640_birli_pyuvdata.ms"),
+    "mwa-small": ("1102865728_small.ms", "1102865728_small.ms"),
+    "hera": ("zen.2456865.60537.xy.uvcRREAAM.ms", "zen.2456865.60537.xy.uvcRREAAM.ms"),
 }
 
 
@@ -50,7 +53,9 @@ def real_ms(name: str, dest_dir: str | os.PathLike) -> Path:
         missing baselines, jittered time stamps) or ``"alma"``
         (X5707_1spw_1scan_10chan_1time_1bl_noatm.ms: ALMA, three fields in the FIELD table,
         one baseline, 10 channels) or ``"ovro-lwa"`` (OVRO-LWA, one integration, 109
-        channels, XX/YY/XY/YX, 210 rows of which 20 are autocorrelations).
+        channels, XX/YY/XY/YX, 210 rows of which 20 are autocorrelations), ``"mwa"``
+        (1090008640_birli_pyuvdata.ms), ``"mwa-small"`` (1102865728_small.ms) or ``"hera"``
+        (zen.2456865.60537.xy.uvcRREAAM.ms, XY only).
     dest_dir
         Existing directory to copy (or unpack) into; the original is never opened.
 

@@ -331,3 +331,38 @@ def test_info_names_the_writer_and_data_groups(converted, capsys):
     assert main(["info", str(ours), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["written_by"] == [f"xstack {xstack.__version__}"] and d["data_groups"] == ["base"]
+
+
+def test_cli_data_group_in_image_subtract_noise(converted, mss, tmp_path, capsys):
+    """image, subtract and noise read xradio's 'corrected' group as xstack's conversion of
+    CORRECTED_DATA: the same image pixels, the same residual flux, the same noise."""
+    from astropy.io import fits
+
+    from xstack.cli import main
+
+    _, theirs = converted["columns"]
+    ours = xstack.convert_ms(mss["columns"], tmp_path / "corr.zarr", datacolumn="CORRECTED_DATA")
+    cat = _catalog(ours, n=4)
+    cat.write(tmp_path / "cat.ecsv")
+    bright = cat[:1].copy()
+    bright["flux"] = [0.3]
+    bright.write(tmp_path / "bright.ecsv")
+    grp = ["--data-group", "corrected"]
+    img = ["--size", "64", "--cell", "1arcsec", "-q"]
+    assert main(["image", str(ours), str(tmp_path / "a.fits"), *img]) == 0
+    assert main(["image", str(theirs), str(tmp_path / "b.fits"), *img, *grp]) == 0
+    np.testing.assert_allclose(fits.getdata(tmp_path / "b.fits"), fits.getdata(tmp_path / "a.fits"),
+                               rtol=0, atol=1e-6 * np.abs(fits.getdata(tmp_path / "a.fits")).max())
+    assert main(["subtract", str(ours), str(tmp_path / "bright.ecsv"), str(tmp_path / "ra.zarr"),
+                 "-q"]) == 0
+    assert main(["subtract", str(theirs), str(tmp_path / "bright.ecsv"), str(tmp_path / "rb.zarr"),
+                 "-q", *grp]) == 0
+    assert xstack.stack_uv(tmp_path / "rb.zarr", cat).flux_jy == pytest.approx(
+        xstack.stack_uv(tmp_path / "ra.zarr", cat).flux_jy, rel=1e-9, abs=0)
+    capsys.readouterr()
+    noise = []
+    for data, extra in ((ours, []), (theirs, grp)):
+        assert main(["noise", str(data), str(tmp_path / "cat.ecsv"), "--method", "analytic",
+                     "--json", *extra]) == 0
+        noise.append(json.loads(capsys.readouterr().out)["noise_jy"])
+    assert noise[1] == pytest.approx(noise[0], rel=1e-9)

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from xstack import _vocabulary as V
+from xstack.cli._data import add_data_group, with_data_group
 from xstack.errors import XstackError
 
 
@@ -56,6 +57,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="image autocorrelations too (default: left out; they measure system "
                         "power, not the sky)")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    add_data_group(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -139,12 +141,13 @@ def run(args: argparse.Namespace) -> int:
                               f"({args.size}, {args.size})")
         mask = np.isfinite(mdata) & (mdata != 0)
     if args.niter > 0:
-        result, cres = clean_data(args.data, niter=args.niter, threshold=threshold,
-                                  gain=args.gain, algorithm=args.algorithm, mask=mask, **common)
+        result, cres = clean_data(with_data_group(args.data, args.data_group), niter=args.niter,
+                                  threshold=threshold, gain=args.gain, algorithm=args.algorithm,
+                                  mask=mask, **common)
         residual, model = cres.residual, cres.model
         n_components = cres.n_components
     else:
-        result = make_image(args.data, pb_cutoff=args.pb_cutoff, **common)
+        result = make_image(with_data_group(args.data, args.data_group), pb_cutoff=args.pb_cutoff, **common)
         # the residual of a dirty image is the (primary-beam uncorrected) dirty image
         residual = result.extra.get("uncorrected", result.image)
         model = np.zeros_like(residual)

@@ -7,6 +7,7 @@ import warnings
 from pathlib import Path
 
 from xstack import _vocabulary as V
+from xstack.cli._data import add_data_group, with_data_group
 from xstack.errors import XstackError
 
 
@@ -65,6 +66,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "power, not the sky)")
     p.add_argument("--overwrite", action="store_true")
     p.add_argument("--no-progress", action="store_true")
+    add_data_group(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     return p
 
@@ -90,7 +92,8 @@ def run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
         res = estimate_noise(
-            data, args.catalog, domain=domain, psf=args.psf, method=args.method,
+            data if domain == "image" else with_data_group(data, args.data_group), args.catalog,
+            domain=domain, psf=args.psf, method=args.method,
             realizations=args.realizations,
             flux=args.flux, min_separation_arcsec=args.min_separation, avoid=args.avoid,
             seed=args.seed, weighting=args.weighting,

@@ -6,6 +6,7 @@ import argparse
 from typing import Any
 
 from xstack import _vocabulary as V
+from xstack.cli._data import add_data_group, with_data_group
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -26,6 +27,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="subtract the model from autocorrelations too (default: left out; "
                         "they measure system power, not the sky)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    add_data_group(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -36,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
     from xstack.imaging.subtract import subtract
 
     pb = args.primary_beam
-    out = subtract(args.data, args.model, args.out, overwrite=args.overwrite,
+    out = subtract(with_data_group(args.data, args.data_group), args.model, args.out,
+                   overwrite=args.overwrite,
                    progress=not args.no_progress, primary_beam=pb,
                    autocorrelations=args.autocorrelations)
     if args.json:

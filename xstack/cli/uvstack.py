@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from xstack import _vocabulary as V
+from xstack.cli._data import add_data_group, with_data_group
 from xstack.errors import XstackError
 
 
@@ -65,9 +66,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="number of uv-distance bins of the profile (default 20)")
     p.add_argument("--profile-png", default=None, metavar="P",
                    help="uv-profile plot (default OUT_uvprofile.png next to OUT.zarr)")
-    p.add_argument("--data-group", default=None, metavar="NAME",
-                   help="MSv4 data group to stack (e.g. corrected: VISIBILITY_CORRECTED of a "
-                        "store converted by xradio); default: base, else each partition's first")
+    add_data_group(p)
     p.add_argument("--autocorrelations", action="store_true",
                    help="stack autocorrelations too (default: left out; they measure system power, "
                         "not the sky)")
@@ -125,16 +124,7 @@ def run(args: argparse.Namespace) -> int:
             raise XstackError("--noise-image needs --weighting sigma2")
         if not Path(args.noise_image).is_file():
             raise XstackError(f"{args.noise_image}: no such noise image (a FITS file)")
-    if args.data_group is not None:
-        from xstack._inputs import is_ms
-        from xstack.schema import open_store
-
-        for d in data:
-            if is_ms(d):
-                raise XstackError(f"{d}: a MeasurementSet has no data groups; choose its "
-                                  "column with xstack convert --datacolumn")
-        # the stores opened here with the group's correlated data as VISIBILITY
-        data = [open_store(d, data_group=args.data_group) for d in data]
+    data = [with_data_group(d, args.data_group) for d in data]
     positions = Positions.from_any(catalog)
     pols: Any = args.polarizations
     if pols not in ("parallel", "all"):

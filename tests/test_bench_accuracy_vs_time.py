@@ -3,24 +3,15 @@ errors move the way they must (the truths are computed in the script with plain 
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import pytest
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_accuracy_vs_time.py"
+from _bench_helpers import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_accuracy_vs_time", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    # dataclasses look their module up in sys.modules while the module is being executed
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_accuracy_vs_time")
 
 
 @pytest.fixture(scope="module")

@@ -4,25 +4,16 @@ CLEANed flux read from a model image."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from _bench_helpers import load_benchmark
 from astropy.io import fits
 from astropy.table import Table
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_clean_casa.py"
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_clean_casa", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_clean_casa")
 
 
 def _header(n: int = 64, cell_arcsec: float = 0.5, crpix: float | None = None,

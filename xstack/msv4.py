@@ -33,6 +33,7 @@ import numpy as np
 import xarray as xr
 
 from xstack.errors import SchemaError
+from xstack.schema import SCHEMA_VERSION
 
 #: The MSv4 schema version xstack writes (xradio 1.3.0's ``VisibilityXds``).
 MSV4_SCHEMA_VERSION = "4.0.1"
@@ -398,18 +399,12 @@ def decode_partition(node: xr.DataTree, name: str, *, data_group: str | None = N
         fid = table.index(field)
         part = ds if len(unique) == 1 else ds.isel(time=np.flatnonzero(field_names == field))
         part = part.copy()
-        part.attrs = {"schema_version": _internal_version(), "field_name": field,
+        part.attrs = {"schema_version": SCHEMA_VERSION, "field_name": field,
                       "field_id": fid, "phase_center": [float(centers[fid][0]),
                                                         float(centers[fid][1])],
                       **base_attrs}
         out.append((name if len(unique) == 1 else f"{name}_{field}", part))
     return out
-
-
-def _internal_version() -> str:
-    from xstack.schema import SCHEMA_VERSION
-
-    return SCHEMA_VERSION
 
 
 def _scan_numbers(scan_names: np.ndarray) -> np.ndarray:

@@ -305,6 +305,9 @@ def _placeholders(plan: PartitionPlan, spec: msread.BlockSpec, ct: int, cb: int)
 #: (more contention, no more overlap: benchmarks/bench_convert.py), hence one.
 WRITE_THREADS = 1
 
+#: Bytes of fill value written per call when an edge chunk's visibilities are padded.
+FILL_PIECE_BYTES = 8 * 1024**2
+
 
 class _BatchRing:
     """A few batch-sized visibility buffers, each reused once the writes from it are done.
@@ -347,16 +350,19 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
           progress: bool, description: str) -> None:
     """Read every chunk from the MS and write it into the store.
 
-    The main thread reads (casacore) into one of two reusable buffer sets while
-    :data:`WRITE_THREADS` threads write the previous chunk from the other, so memory holds
-    at most two chunks. Uncompressed arrays (VISIBILITY) of a chunk whose rows fill its
-    cells in order are written batch by batch as they are read (visibilities through a
-    :class:`_BatchRing`), after the other arrays of the chunk were read and handed to the
-    writers, so reading and writing overlap within a chunk too (an MS of one chunk would
-    otherwise read, then write).
+    The main thread reads (casacore) while :data:`WRITE_THREADS` threads write what was read
+    before. Uncompressed arrays (VISIBILITY) of a chunk whose rows fill its cells in order
+    are *streamed*: written batch by batch as they are read, through a :class:`_BatchRing`
+    of a few batch-sized buffers, after the other arrays of the chunk were read into a
+    chunk-sized buffer set and handed to the writers - so their compression overlaps the
+    reading of the visibilities, and the next chunk can reuse the same buffer set (one set
+    for a streamed conversion: memory holds one chunk of WEIGHT, FLAG and UVW plus the
+    ring, not two chunks of everything). Other chunks alternate between two buffer sets, so
+    one is written while the other is read.
     Chunk files are written by :class:`xstack.io._store.ChunkFiles` (the bytes zarr would
     write, without its per-chunk overhead) where the array's codecs allow, else by zarr.
     """
+    from collections import deque
     from concurrent.futures import Future, ThreadPoolExecutor
     from functools import partial
 
@@ -368,28 +374,34 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
 
         total = sum(-(-p.times.size // ct) * -(-p.antenna1.size // cb) for p, (ct, cb) in zip(plans, sizes))
         bar = progress_iter(range(total), description, enabled=True)
-    in_flight: list[list[Future]] = [[], []]  # the writes still reading each buffer set
+    in_use: list[list[Future]] = [[], []]  # the writes still reading each buffer set
+    pending: deque[list[Future]] = deque()  # every chunk's writes, oldest chunk first
     open_fds: set[int] = set()
 
-    def settle(slot: int) -> None:
-        futures, in_flight[slot] = in_flight[slot], []
+    def free(slot: int) -> None:
+        """Wait until no write reads buffer set ``slot`` any more."""
+        futures, in_use[slot] = in_use[slot], []
         for fut in futures:
             fut.result()
-        if futures and bar is not None:
-            bar.update(1)
 
-    def finish_raw(files: ChunkFiles, fd: int, batches: list[Future], chunk: np.ndarray,
+    def retire(keep: int) -> None:
+        """Wait for the writes of all but the ``keep`` newest chunks (and count them done)."""
+        while len(pending) > keep:
+            for fut in pending.popleft():
+                fut.result()
+            if bar is not None:
+                bar.update(1)
+
+    def finish_raw(files: ChunkFiles, fd: int, batches: list[Future], chunk_shape: tuple[int, ...],
                    n_valid: int, n_streamed: list[int]) -> None:
         for fut in batches:
             fut.result()
         try:
-            if n_streamed[0] != n_valid * chunk.shape[1]:  # _chunk_is_direct promised every cell
-                raise RuntimeError(f"only {n_streamed[0]} of {n_valid * chunk.shape[1]} cells of a "
+            if n_streamed[0] != n_valid * chunk_shape[1]:  # _chunk_is_direct promised every cell
+                raise RuntimeError(f"only {n_streamed[0]} of {n_valid * chunk_shape[1]} cells of a "
                                    "streamed chunk were read")
-            if n_valid < chunk.shape[0]:  # edge chunk: zarr pads it with the fill value
-                tail = chunk[n_valid:]
-                tail[...] = files.fill_value
-                files.write_at(fd, tail, chunk[:n_valid].nbytes)
+            if n_valid < chunk_shape[0]:  # edge chunk: zarr pads it with the fill value
+                _write_fill(fd, files, chunk_shape[1:], n_valid, chunk_shape[0] - n_valid)
         finally:
             open_fds.discard(fd)
             os.close(fd)
@@ -400,7 +412,8 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
         files.write(coords, chunk)
 
     def stream_batch(streamed: dict[str, tuple[int, list[Future]]], chunks: dict[str, np.ndarray],
-                     n_streamed: list[int], ring: _BatchRing, c0: int, c1: int) -> None:
+                     n_streamed: list[int], ring: _BatchRing, reading: list[Future],
+                     c0: int, c1: int) -> None:
         """Hand cells c0:c1 of the streamed arrays, just read, to the writers."""
         n_streamed[0] += c1 - c0
         for var, (fd, batches) in streamed.items():
@@ -413,6 +426,8 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
             batches.append(fut)
             if var == "VISIBILITY":
                 ring.writes[ring.current].append(fut)
+            else:  # read from the buffer set
+                reading.append(fut)
 
     def write_others(files: dict[str, ChunkFiles | None], streamed: dict, chunks: dict[str, np.ndarray],
                      coords: dict[str, tuple[int, ...]], n_valid: int, futures: list[Future],
@@ -434,52 +449,65 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
                 arrays = {var: group[var] for var in msread.BLOCK_VARS}
                 files = {var: ChunkFiles.for_array(a) for var, a in arrays.items()}
                 for slot in (0, 1):  # the previous partition's buffers are freed first
-                    settle(slot)
-                buffers = [msread.block_buffers(spec, ct, cb) for _ in range(2)]
+                    free(slot)
+                retire(0)
+                buffers: list[dict[str, np.ndarray] | None] = [None, None]  # allocated when first used
                 ring = _BatchRing(3, (msread.batch_rows(spec), spec.n_channels, spec.n_pols), spec.vis_dtype)
-                for k, (t0, t1, b0, b1, rows, ti, bi) in enumerate(chunk_blocks(plan, ct, cb)):
-                    slot = k % 2
-                    settle(slot)  # its buffer set is free again
+                slot = 1
+                for t0, t1, b0, b1, rows, ti, bi in chunk_blocks(plan, ct, cb):
+                    whole = (b1 - b0 == cb)
+                    streams = whole and any(f is not None and f.raw for f in files.values()) \
+                        and _chunk_is_direct(rows, ti, bi, t1 - t0, b1 - b0)
+                    # a streamed chunk's buffered arrays are handed to the writers before its
+                    # visibilities are read, so the next chunk can take the same set; others alternate
+                    slot = 0 if streams else 1 - slot
+                    free(slot)
+                    retire(2)
+                    if buffers[slot] is None:
+                        buffers[slot] = msread.block_buffers(spec, ct, cb)
                     buf = buffers[slot]
                     # chunk-shaped views of the buffers; the block is their first t1 - t0 times
-                    whole = (b1 - b0 == cb)
                     chunks = {var: buf[var][:ct * cb * int(np.prod(a.shape[2:]))].reshape(
                         (ct, cb, *a.shape[2:])) for var, a in arrays.items()} if whole else {}
                     coords = {var: (t0 // ct, b0 // cb) + (0,) * (a.ndim - 2) for var, a in arrays.items()}
                     streamed: dict[str, tuple[int, list[Future]]] = {}
                     n_streamed = [0]  # cells handed to the writers
-                    if whole and _chunk_is_direct(rows, ti, bi, t1 - t0, b1 - b0):
+                    if streams:
                         for var, f in files.items():
                             if f is not None and f.raw:
                                 fd = f.open(coords[var])
                                 open_fds.add(fd)
                                 streamed[var] = (fd, [])
 
-                    futures = in_flight[slot]
+                    reading = in_use[slot]  # the writes that read this buffer set
                     early: set[str] = set()  # written while the visibilities are still read
                     hooks = {}
                     if streamed:
-                        hooks = {"on_batch": partial(stream_batch, streamed, chunks, n_streamed, ring),
+                        hooks = {"on_batch": partial(stream_batch, streamed, chunks, n_streamed, ring,
+                                                     reading),
                                  "on_others": partial(write_others, files, streamed, chunks, coords, t1 - t0,
-                                                      futures, early)}
+                                                      reading, early)}
                         if "VISIBILITY" in streamed:
                             hooks["vis_batch"] = lambda c0, c1, ring=ring: ring.take(c1 - c0)
                     block = msread.read_block(spec, rows, ti, bi, t1 - t0, b1 - b0, plan.times[t0:t1],
                                               buffers=buf, **hooks)
+                    finishing: list[Future] = []  # the writes that read only the ring
                     for var, a in arrays.items():
                         f = files[var]
                         if var in early:
                             continue
                         if var in streamed:
                             fd, batches = streamed[var]
-                            futures.append(pool.submit(finish_raw, f, fd, batches, chunks[var], t1 - t0,
-                                                       n_streamed))
+                            finishing.append(pool.submit(finish_raw, f, fd, batches, (ct, cb, *a.shape[2:]),
+                                                         t1 - t0, n_streamed))
                         elif f is not None and whole:
-                            futures.append(pool.submit(write_chunk, f, coords[var], chunks[var], t1 - t0))
+                            reading.append(pool.submit(write_chunk, f, coords[var], chunks[var], t1 - t0))
                         else:
-                            futures.append(pool.submit(write_zarr, a, block[var], t0, t1, b0, b1))
+                            reading.append(pool.submit(write_zarr, a, block[var], t0, t1, b0, b1))
+                    pending.append([*reading, *finishing])
             for slot in (0, 1):
-                settle(slot)
+                free(slot)
+            retire(0)
         except BaseException:
             pool.shutdown(wait=True, cancel_futures=True)
             raise
@@ -488,6 +516,17 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
                 os.close(fd)
             if bar is not None:
                 bar.close()
+
+
+def _write_fill(fd: int, files: ChunkFiles, row_shape: tuple[int, ...], start_row: int, n_rows: int) -> None:
+    """Write ``n_rows`` rows of the fill value from row ``start_row`` of a raw chunk file,
+    a few MB at a time (an edge chunk's padding; no chunk-sized buffer)."""
+    row = np.full(row_shape, files.fill_value, dtype=files.dtype)
+    step = max(1, FILL_PIECE_BYTES // max(1, row.nbytes))
+    piece = np.broadcast_to(row, (min(step, n_rows), *row_shape)).copy()
+    for r in range(0, n_rows, step):
+        n = min(step, n_rows - r)
+        ChunkFiles.write_at(fd, piece[:n], (start_row + r) * row.nbytes)
 
 
 def convert_ms(

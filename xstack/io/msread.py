@@ -26,7 +26,7 @@ CASACORE_LOCK = threading.RLock()
 _OPEN_TABLES: dict[str, Any] = {}
 
 #: Bytes of row data copied out of casacore per call (bounds the temporary buffers).
-READ_BATCH_BYTES = 16 * 1024**2
+READ_BATCH_BYTES = 8 * 1024**2
 
 #: casacore direction frames that are taken as ICRS (the ~20 mas J2000 frame bias ignored).
 ICRS_LIKE = ("J2000", "ICRS")

@@ -98,6 +98,7 @@ def test_options_are_frozen_and_carry_derived_uv_limits():
     params = inspect.signature(st.stack_uv).parameters
     fields = {f.name: f.default for f in dataclasses.fields(UvstackOptions) if f.init}
     keywords = {k: p.default for k, p in params.items() if p.kind is p.KEYWORD_ONLY}
+    assert keywords.pop("compute") is True  # when the pass runs, not how: no stack option
     assert fields == keywords
     assert UvstackOptions() == UvstackOptions(weighting="pb")
     json.dumps(opts.to_dict())

@@ -48,6 +48,7 @@ _configure_numba_cache()
 _API = {
     # data model and I/O
     "open_store": "xstack.schema:open_store",
+    "use_storage_options": "xstack._fs:use_storage_options",
     "write_store": "xstack.schema:write_store",
     "validate_partition": "xstack.schema:validate_partition",
     "validate_store": "xstack.schema:validate_store",
@@ -72,6 +73,8 @@ _API = {
     "simulate": "xstack.sim.simulate:simulate",
     # uv-stacking
     "stack_uv": "xstack.uvstack.stack:stack_uv",
+    "compute": "xstack._lazy:compute",
+    "LazyResult": "xstack._lazy:LazyResult",
     "uv_profile": "xstack.uvstack.stack:uv_profile",
     # imaging and image-stacking
     "make_image": "xstack.imaging.image:make_image",
@@ -84,6 +87,8 @@ _API = {
     "estimate_noise": "xstack.noise.estimate:estimate_noise",
     # inspecting
     "info": "xstack._info:info",
+    # where the dask work runs
+    "use_cluster": "xstack._cluster:use_cluster",
 }
 
 __all__ = ["__version__", "numba_cache_dir", *_API]

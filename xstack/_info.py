@@ -156,11 +156,18 @@ def _msv4_info(path: Path) -> dict[str, Any]:
     """The MSv4 writer and data groups of a store (from its partitions' metadata)."""
     import json
 
+    from xstack._fs import locate
+
+    loc = locate(path)  # a local path or a store URL
+    try:
+        docs = loc.read_many([f"{name}/zarr.json" for name, is_dir in loc.listdir() if is_dir])
+    except OSError:
+        docs = {}
     writers, groups = set(), []
-    for meta in sorted(path.glob("*/zarr.json")):
+    for key in sorted(docs):
         try:
-            attrs = json.loads(meta.read_text()).get("attributes", {}) or {}
-        except (OSError, ValueError):
+            attrs = json.loads(docs[key]).get("attributes", {}) or {}
+        except (ValueError, AttributeError):
             continue
         if attrs.get("type") != "visibility":
             continue
@@ -489,6 +496,10 @@ def info(path: str | os.PathLike, *, datacolumn: str = "DATA") -> dict[str, Any]
     XstackError
         If ``path`` does not exist or is none of the three kinds.
     """
+    from xstack._fs import is_remote
+
+    if is_remote(path):  # a store URL (s3://...): only stores live there
+        return _store_info(path)
     path = Path(path)
     if not path.exists():
         raise XstackError(f"{path}: no such file, MeasurementSet or store")

@@ -4,7 +4,9 @@ Every stage that reads visibilities (uvstack, image, subtract, fit, noise, the u
 accepts the same kinds of input through :func:`partitions` (one data set) or
 :func:`grouped_partitions` (several data sets, each with a label):
 
-* a store path (``.zarr`` written by ``xstack convert``, ``simulate``, ``uvstack``...);
+* a store path (``.zarr`` written by ``xstack convert``, ``simulate``, ``uvstack``...), or a
+  store URL (``file://``, ``memory://``, ``s3://``...; :mod:`xstack._fs`: storage options
+  given here, or set around the call with :func:`xstack.use_storage_options`);
 * a MeasurementSet path (unless ``allow_ms=False``): converted lazily to a temporary store
   that lives exactly as long as some lazy object can still read it
   (:func:`xstack._lifetime.tie_lifetime`);
@@ -38,12 +40,17 @@ _KINDS = ("give a store path, a MeasurementSet path, an xarray DataTree or Datas
 
 def is_ms(path: str | os.PathLike) -> bool:
     """True if ``path`` is a MeasurementSet (a casacore table directory)."""
-    path = Path(path)
+    from xstack._fs import is_remote, locate
+
+    if is_remote(path):  # casacore reads local tables only
+        return False
+    path = Path(locate(path).path)
     return path.is_dir() and (path / "table.dat").exists()
 
 
 def open_input(path: str | os.PathLike, *, allow_ms: bool = True,
-               prefix: str = "xstack-input-") -> xr.DataTree:
+               prefix: str = "xstack-input-",
+               storage_options: Mapping[str, Any] | None = None) -> xr.DataTree:
     """Open a store path, or convert a MeasurementSet path lazily, as a DataTree.
 
     A MeasurementSet is converted into a temporary directory named ``<prefix>*``, said on
@@ -55,10 +62,13 @@ def open_input(path: str | os.PathLike, *, allow_ms: bool = True,
         The path does not exist, is a MeasurementSet and ``allow_ms`` is false, or is no
         complete xstack store.
     """
+    from xstack._fs import is_remote, locate
     from xstack._lifetime import TemporaryStoreOwner, tie_lifetime
     from xstack.schema import open_store
 
-    path = Path(path)
+    if is_remote(path):
+        return open_store(path, storage_options=storage_options)
+    path = Path(locate(path).path)  # a file:// URL is its path
     if not path.exists():
         raise XstackError(f"{path}: no such store or MeasurementSet")
     if is_ms(path):
@@ -89,9 +99,11 @@ def _one(data: Any, allow_ms: bool, prefix: str = "xstack-input-"
 
     if hasattr(data, "stacked") and not isinstance(data, (xr.Dataset, xr.DataTree, Mapping)):
         data = data.stacked
+    from xstack._fs import is_url
+
     label = None
     if isinstance(data, (str, os.PathLike)):
-        label = str(Path(data))
+        label = str(data) if is_url(data) else str(Path(data))
         data = open_input(data, allow_ms=allow_ms, prefix=prefix)
     if isinstance(data, xr.DataTree):
         parts = list(iter_partitions(data))

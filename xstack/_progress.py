@@ -49,11 +49,72 @@ class _TqdmCallback(Callback):
             self.bar = None
 
 
+def _distributed_bar_class() -> type:
+    """A ``distributed`` progress bar (scheduler-side task counts) drawn on a tqdm bar."""
+    from distributed.diagnostics.progressbar import TextProgressBar
+
+    class _TqdmDistributedBar(TextProgressBar):
+        """Follows every task behind ``keys`` on the scheduler; advances ``bar`` to match."""
+
+        def __init__(self, keys: Any, bar: Any, **kwargs: Any) -> None:
+            self.bar = bar
+            super().__init__(keys, **kwargs)
+
+        def _draw_bar(self, remaining: int, all: int, **kwargs: Any) -> None:  # noqa: A002
+            if self.bar.total != all:
+                self.bar.total = all
+            self.bar.update(all - remaining - self.bar.n)
+
+        def _draw_stop(self, **kwargs: Any) -> None:
+            pass
+
+    return _TqdmDistributedBar
+
+
+def _distributed_get(client: Any, description: str) -> Any:
+    """A dask ``scheduler=`` function: compute on ``client``, a tqdm bar following the tasks.
+
+    The local-scheduler callback never fires for a distributed computation, so the graph is
+    submitted as futures and the scheduler reports progress over them (counting every task
+    they depend on, as ``distributed.progress`` does); the results are gathered at the end.
+    """
+    from dask.core import flatten
+
+    def get(dsk: Any, keys: Any, **kwargs: Any) -> Any:
+        futures = client.get(dsk, keys, sync=False, **kwargs)
+        flat = [f for f in flatten(futures) if hasattr(f, "key")]
+        bar = tqdm(total=len(flat), desc=description, file=sys.stderr, unit="task",
+                   leave=False, dynamic_ncols=True)
+        try:
+            if flat:
+                _distributed_bar_class()(flat, bar, scheduler=client.scheduler.address,
+                                         interval="100ms")
+            return client.gather(futures)
+        finally:
+            bar.close()
+
+    return get
+
+
 @contextlib.contextmanager
 def dask_progress(description: str = "computing", enabled: bool = True) -> Iterator[None]:
-    """Show a progress bar on stderr for dask computations run inside the block."""
+    """Show a progress bar on stderr for dask computations run inside the block.
+
+    On the local schedulers a dask callback advances the bar per task; when a
+    ``distributed.Client`` is the default, computations of the block without an explicit
+    ``scheduler=`` go to it and the bar follows the scheduler's task counts.
+    """
     if not (enabled and _allowed):
         yield
+        return
+    from xstack._cluster import active_client
+
+    client = active_client()
+    if client is not None:
+        import dask
+
+        with dask.config.set(scheduler=_distributed_get(client, description)):
+            yield
         return
     with _TqdmCallback(description):
         yield

@@ -43,6 +43,8 @@ import math
 import numba
 import numpy as np
 
+from xstack._cluster import cap_numba_threads
+
 #: sigma of a Gaussian = MAD_TO_SIGMA * median absolute deviation
 MAD_TO_SIGMA = 1.482602218505602
 #: Fewest difference pairs for an estimate of one (baseline, correlation); below it the
@@ -245,6 +247,7 @@ def pair_variance(vis, weight, flag, *, pol_mask=None, along: str = "auto",
     n = np.empty((nb, npol), dtype=np.int64)
     invw = np.empty((nb, npol))
     if vis.size:
+        cap_numba_threads()
         _pair_scatter_numba(vis, weight, flag, pm, along == "time", int(min_pairs),
                             max(1, int(max_pairs)), var, n, invw)
     else:

@@ -32,7 +32,8 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from xstack._atomic import atomic_output
+from xstack._atomic import atomic_store
+from xstack._fs import Location, locate, output_path
 from xstack.errors import SchemaError, XstackError
 
 SCHEMA_NAME = "xstack.processing_set"
@@ -276,13 +277,15 @@ def iter_partitions(tree: xr.DataTree, data_group: str | None = None
             yield name, node.to_dataset()
 
 
-def _read_root_attrs(path: Path) -> dict[str, Any]:
+def _read_root_attrs(loc: Location) -> dict[str, Any]:
     """Read the root group's attributes as plain JSON (never through a codec)."""
-    meta = path / "zarr.json"
-    if not path.is_dir() or not meta.is_file():
+    path = loc.name
+    if loc.local and not (loc.local_path.is_dir() and (loc.local_path / "zarr.json").is_file()):
         raise SchemaError(f"{path}: not a zarr v3 store (no zarr.json)")
     try:
-        doc = json.loads(meta.read_text())
+        doc = json.loads(loc.read_bytes("zarr.json"))
+    except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
+        raise SchemaError(f"{path}: not a zarr v3 store (no zarr.json)") from None
     except (OSError, ValueError) as exc:
         raise SchemaError(f"{path}: corrupt zarr.json ({exc})") from None
     if doc.get("node_type") != "group":
@@ -317,12 +320,17 @@ def _codec_names(codecs: Any, where: str) -> Iterator[str]:
                 yield from _codec_names(conf[key], where)
 
 
-def check_array_metadata(path: str | os.PathLike) -> int:
+def check_array_metadata(path: str | os.PathLike | Location,
+                         storage_options: Mapping[str, Any] | None = None) -> int:
     """Check every array of a store on disk uses only safe data types and codecs.
 
     Metadata are read as plain JSON before zarr or xarray see the store, so a store from
     elsewhere that asks for a pickle (or any unknown) codec, an object data type or zarr v2
     metadata is refused before anything could be decoded. Chunk directories are not listed.
+    ``path`` may be a URL (:mod:`xstack._fs`): there the consolidated metadata of the root
+    ``zarr.json`` are checked, which are what :func:`open_store` reads on a remote store (one
+    request, not one per node); without them, one listing per group and the zarr.json files
+    of its children fetched in one batch.
 
     Returns
     -------
@@ -334,60 +342,95 @@ def check_array_metadata(path: str | os.PathLike) -> int:
     SchemaError
         Naming the first offending array and what is wrong with it.
     """
-    root = Path(path)
+    root = locate(path, storage_options)
+    if not root.local:
+        nodes = consolidated_nodes(root)
+        if nodes is not None:
+            base = root.name.rstrip("/")
+            return sum(_check_node(f"{base}/{key}", meta) for key, meta in sorted(nodes.items()))
     n_arrays = 0
-    todo = [root]
+    todo = [""]  # groups to look into, relative to the root
     while todo:
-        group = todo.pop()
+        rel = todo.pop()
+        group = root.join(rel) if rel else root
+        entries = group.listdir()
         for v2 in (".zarray", ".zgroup", ".zattrs", ".zmetadata"):
-            if (group / v2).exists():
-                raise SchemaError(f"{group}: zarr v2 metadata ({v2}) in a zarr v3 store")
-        for child in sorted(group.iterdir()):
-            meta_file = child / "zarr.json"
-            if not child.is_dir() or not meta_file.is_file():
+            if any(name == v2 for name, _ in entries):
+                raise SchemaError(f"{group.name}: zarr v2 metadata ({v2}) in a zarr v3 store")
+        children = [name for name, is_dir in entries if is_dir]
+        try:
+            docs = group.read_many([f"{child}/zarr.json" for child in children])
+        except OSError as exc:
+            raise SchemaError(f"{group.name}: corrupt zarr.json ({exc})") from None
+        for child in children:
+            text = docs.get(f"{child}/zarr.json")
+            if text is None:
                 continue
-            where = f"{root}/{child.relative_to(root)}"
+            where = f"{root.name.rstrip('/')}/{rel + '/' if rel else ''}{child}"
             try:
-                meta = json.loads(meta_file.read_text())
-            except (OSError, ValueError) as exc:
+                meta = json.loads(text)
+            except ValueError as exc:
                 raise SchemaError(f"{where}: corrupt zarr.json ({exc})") from None
-            if not isinstance(meta, Mapping):
-                raise SchemaError(f"{where}: corrupt zarr.json (not a JSON object)")
-            if meta.get("node_type") == "group":
-                todo.append(child)
-                continue
-            if meta.get("node_type") != "array":
-                raise SchemaError(f"{where}: unknown zarr node type {meta.get('node_type')!r}")
-            n_arrays += 1
-            dtype = meta.get("data_type")
-            dname = dtype.get("name") if isinstance(dtype, Mapping) else dtype
-            if dname not in SAFE_DATA_TYPES:
-                raise SchemaError(f"{where}: data type {dname!r} is not allowed in an xstack "
-                                  "store (numeric, bool and string arrays only)")
-            for name in _codec_names(meta.get("codecs", []), where):
-                if name not in SAFE_CODECS:
-                    raise SchemaError(f"{where}: codec {name!r} is not allowed in an xstack "
-                                      f"store (only {', '.join(sorted(SAFE_CODECS))})")
+            if _check_node(where, meta):
+                n_arrays += 1
+            else:
+                todo.append(f"{rel}/{child}" if rel else child)
     return n_arrays
 
 
-def validate_store(path: str | os.PathLike) -> dict[str, Any]:
+def _check_node(where: str, meta: Any) -> bool:
+    """Check the metadata of one zarr node: True for a (safe) array, False for a group."""
+    if not isinstance(meta, Mapping):
+        raise SchemaError(f"{where}: corrupt zarr.json (not a JSON object)")
+    if meta.get("node_type") == "group":
+        return False
+    if meta.get("node_type") != "array":
+        raise SchemaError(f"{where}: unknown zarr node type {meta.get('node_type')!r}")
+    dtype = meta.get("data_type")
+    dname = dtype.get("name") if isinstance(dtype, Mapping) else dtype
+    if dname not in SAFE_DATA_TYPES:
+        raise SchemaError(f"{where}: data type {dname!r} is not allowed in an xstack "
+                          "store (numeric, bool and string arrays only)")
+    for name in _codec_names(meta.get("codecs", []), where):
+        if name not in SAFE_CODECS:
+            raise SchemaError(f"{where}: codec {name!r} is not allowed in an xstack "
+                              f"store (only {', '.join(sorted(SAFE_CODECS))})")
+    return True
+
+
+def consolidated_nodes(loc: Location) -> dict[str, Any] | None:
+    """The consolidated metadata (node path -> zarr.json document) in a store's root
+    ``zarr.json``, or None if it has none."""
+    try:
+        doc = json.loads(loc.read_bytes("zarr.json"))
+    except (OSError, ValueError):
+        return None
+    cm = doc.get("consolidated_metadata") if isinstance(doc, Mapping) else None
+    nodes = cm.get("metadata") if isinstance(cm, Mapping) else None
+    return dict(nodes) if isinstance(nodes, Mapping) and nodes else None
+
+
+def validate_store(path: str | os.PathLike | Location,
+                   storage_options: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Check the root attributes of an xstack store on disk; return them.
 
     A store left behind by an interrupted write never validates: the ``xstack_complete``
     flag is written last, and stores are renamed into place only after that. Every array's
     metadata is checked too (:func:`check_array_metadata`): only safe codecs and data types,
-    so a store that passes can be opened and read without running any code.
+    so a store that passes can be opened and read without running any code. ``path`` may be
+    a URL (:mod:`xstack._fs`); on object stores, which have no rename, the flag is the
+    store's very last write.
     """
-    path = Path(path)
-    if not path.exists():
+    loc = locate(path, storage_options)
+    path = loc.name
+    if not loc.exists():
         raise XstackError(f"{path}: no such store")
-    attrs = _read_root_attrs(path)
+    attrs = _read_root_attrs(loc)
     if attrs.get("xstack_schema") != SCHEMA_NAME:
         if attrs.get("type") == "processing_set":
             # an MSv4 processing set of another writer (xradio's converter): its partitions
             # are checked as they are read (xstack.msv4.decode_partition)
-            check_array_metadata(path)
+            check_array_metadata(loc)
             return {**attrs, "xstack_kind": "processing_set", "xstack_foreign": True}
         raise SchemaError(f"{path}: neither an xstack store nor an MSv4 processing set (no "
                           "xstack_schema or type attribute)")
@@ -400,7 +443,7 @@ def validate_store(path: str | os.PathLike) -> dict[str, Any]:
                           "sets): convert the MeasurementSet again (or simulate again)")
     if attrs.get("xstack_kind") not in KINDS:
         raise SchemaError(f"{path}: unknown store kind {attrs.get('xstack_kind')!r}")
-    check_array_metadata(path)
+    check_array_metadata(loc)
     return attrs
 
 
@@ -463,7 +506,8 @@ def read_chunk(array: Any, key: Any, asarray: bool = True, lock: Any = None) -> 
 
 
 def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None,
-               data_group: str | None = None) -> xr.DataTree:
+               data_group: str | None = None, *,
+               storage_options: Mapping[str, Any] | None = None) -> xr.DataTree:
     """Open an xstack store or any MSv4 processing set lazily (dask-backed) as an
     :class:`xarray.DataTree`.
 
@@ -471,11 +515,15 @@ def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None,
     ----------
     path
         The ``.zarr`` directory written by ``xstack convert``, ``simulate``, ``uvstack``...,
-        or an MSv4 processing set written by another tool (xradio's converter).
+        or an MSv4 processing set written by another tool (xradio's converter): a local path
+        or any fsspec URL (``file://``, ``memory://``, ``s3://``...).
     chunks
         Optional dask chunks per dimension; default: the chunks on disk.
     data_group
         MSv4 data group checked here (see :func:`iter_partitions`).
+    storage_options
+        Options of a URL's filesystem (:func:`xstack._fs.locate`), e.g.
+        ``{"endpoint_url": ..., "anon": True}`` for ``s3://``.
 
     Returns
     -------
@@ -489,17 +537,22 @@ def open_store(path: str | os.PathLike, chunks: Mapping[str, int] | None = None,
         If the path is not a complete xstack store of a supported schema version, or a
         partition does not follow the schema.
     """
-    path = Path(path)
-    validate_store(path)
+    loc = locate(path, storage_options)
+    path = loc.name
+    validate_store(loc)
     try:
         # every chunk is read through read_chunk: a chunk that does not decode becomes one
         # XstackError naming the store, variable and chunk, wherever it is computed
         # the metadata of every node, not the consolidated copy at the root (written for
         # other readers, e.g. xradio): it is what check_array_metadata has just read, and a
-        # store damaged since it was written shows here, not when a chunk is computed
+        # store damaged since it was written shows here, not when a chunk is computed.
+        # Remote stores excepted: there every node costs a request, and the consolidated
+        # metadata are what check_array_metadata has just checked
+        consolidated = not loc.local and consolidated_nodes(loc) is not None
         with quiet_zarr_warnings():
-            tree = xr.open_datatree(path, engine="zarr", chunks=dict(chunks or {}),
-                                    consolidated=False, zarr_format=3,
+            tree = xr.open_datatree(loc.zarr_store(read_only=True), engine="zarr",
+                                    chunks=dict(chunks or {}),
+                                    consolidated=consolidated, zarr_format=3,
                                     from_array_kwargs={"getitem": read_chunk})
     except Exception as exc:  # zarr/xarray raise many types for damaged stores
         raise SchemaError(f"{path}: cannot be opened as a zarr store ({exc})") from None
@@ -542,15 +595,73 @@ def partition_nodes(partitions: Mapping[str, xr.Dataset]) -> dict[str, xr.Datase
     return nodes
 
 
-def finish_store(path: str | os.PathLike) -> None:
-    """Mark a store complete and consolidate its metadata (the last step of every writer,
-    before the rename into place): the completion flag is then in the consolidated copy too."""
+def finish_store(path: str | os.PathLike | Location,
+                 storage_options: Mapping[str, Any] | None = None, *,
+                 consolidated: bool = False) -> None:
+    """Consolidate a store's metadata and mark it complete (the last step of every writer,
+    before the rename into place of a local store).
+
+    The completion flag is the very last write, after every chunk and the consolidated
+    metadata: on an object store (no rename) the store is written under its final name, and
+    a write interrupted before that one never opens (:func:`validate_store`). It rewrites the
+    root ``zarr.json`` whole (one object), keeping the consolidated metadata in it. With
+    ``consolidated`` the writer has consolidated them already (from metadata it built in
+    memory: no walk over the store's nodes, one request per node on an object store).
+    """
     import zarr
 
-    root = zarr.open_group(str(path), mode="r+", zarr_format=3)
-    root.attrs["xstack_complete"] = True
+    store = locate(path, storage_options).zarr_store()
     with quiet_zarr_warnings():
-        zarr.consolidate_metadata(str(path), zarr_format=3)
+        if not consolidated:
+            zarr.consolidate_metadata(store, zarr_format=3)
+        root = zarr.open_group(store, mode="r+", zarr_format=3, use_consolidated=True)
+        root.attrs["xstack_complete"] = True
+
+
+def write_skeleton(loc: Location, nodes: Mapping[str, xr.Dataset], root_attrs: Mapping[str, Any],
+                   encoding: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+    """Create a store at ``loc`` (which must not exist) with every node's metadata, its
+    numpy-backed variables written and its dask-backed ones (never computed) as empty zarr
+    arrays chunked like the dask arrays, and the consolidated metadata.
+
+    The skeleton (a few dozen small objects) is built in memory and then written out in one
+    go: through a local store every object costs a round trip to zarr's I/O thread, on an
+    object store several requests (xarray's ``mode="w"``), where one batch of puts does here.
+    Writing chunks does not change the consolidated metadata, so they are final already.
+    """
+    import zarr
+
+    skeleton: dict[str, Any] = {}
+    memory = zarr.storage.MemoryStore(store_dict=skeleton)
+    root = zarr.open_group(memory, mode="w", zarr_format=3)
+    root.attrs.update(dict(root_attrs))
+    with quiet_zarr_warnings():
+        for name, ds in nodes.items():
+            enc = {k: dict(v) for k, v in (encoding or {}).items() if k in ds.variables}
+            ds.drop_encoding().to_zarr(memory, group=name, mode="w", zarr_format=3,
+                                       consolidated=False, compute=False, encoding=enc)
+        zarr.consolidate_metadata(memory, zarr_format=3)
+    if loc.local:
+        loc.local_path.mkdir()
+    loc.write_many({key: value.to_bytes() for key, value in skeleton.items()})
+
+
+def _store_lazy(root: Any, nodes: Mapping[str, xr.Dataset]) -> Any:
+    """One delayed write of every dask-backed variable of ``nodes`` into the arrays that
+    :func:`write_skeleton` created under ``root`` (opened from its consolidated metadata:
+    no request per array, where xarray's ``to_zarr`` makes several on an object store).
+    Each variable is encoded as xarray's ``to_zarr`` encodes it, so the chunks are the same."""
+    import dask.array as da
+    from xarray.backends.zarr import encode_zarr_variable
+
+    sources, targets = [], []
+    for name, ds in nodes.items():
+        for var, value in ds.drop_encoding().variables.items():
+            if isinstance(value.data, da.Array):
+                encoded = encode_zarr_variable(value, name=var, zarr_format=3)
+                sources.append(encoded.data)
+                targets.append(root[f"{name}/{var}"])
+    return da.store(sources, targets, lock=False, compute=False)
 
 
 def new_store_attrs(partitions: Mapping[str, xr.Dataset], kind: str,
@@ -588,7 +699,8 @@ def write_store(
     description: str = "writing",
     compute_with: Sequence[Any] = (),
     final_attrs: Callable[[tuple[Any, ...]], Mapping[str, Any]] | None = None,
-) -> Path:
+    storage_options: Mapping[str, Any] | None = None,
+) -> Path | str:
     """Write partitions to a new store, atomically.
 
     Data are written under a temporary name beside ``path``; the completion flag is set and
@@ -601,7 +713,9 @@ def write_store(
     partitions
         Mapping of group name (see :func:`partition_name`) to partition Dataset.
     path
-        Output ``.zarr`` directory.
+        Output ``.zarr`` directory, or a URL (``s3://bucket/out.zarr``...): there, with no
+        rename, the store is written in place and its completion flag last
+        (:func:`finish_store`).
     kind
         ``"processing_set"`` or ``"stacked"``.
     overwrite
@@ -617,6 +731,13 @@ def write_store(
     final_attrs
         Called with the computed ``compute_with`` results; the root attributes it returns are
         stored before the store is marked complete.
+    storage_options
+        Options of a URL's filesystem (:func:`xstack._fs.locate`).
+
+    Returns
+    -------
+    pathlib.Path or str
+        ``path`` (the URL, for a remote store).
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -627,15 +748,24 @@ def write_store(
     root_attrs = new_store_attrs(partitions, kind, attrs)
     import zarr
 
-    with atomic_output(path, overwrite=overwrite) as tmp:
-        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
-        root.attrs.update(root_attrs)
+    with atomic_store(path, overwrite=overwrite, storage_options=storage_options) as loc:
+        tmp = loc.zarr_store()
+        nodes = partition_nodes(partitions)
+        if loc.local:
+            root = zarr.open_group(tmp, mode="w", zarr_format=3)
+            root.attrs.update(root_attrs)
+        else:  # every array xarray creates costs several requests on an object store
+            write_skeleton(loc, nodes, root_attrs)
         # stale encodings (chunks of a source store) must not override dask chunks; a
         # partition's own group is written before its children (mode "w" clears a group)
         with quiet_zarr_warnings():
-            writes = [ds.drop_encoding().to_zarr(str(tmp), group=name, mode="w", zarr_format=3,
-                                                 consolidated=False, compute=False)
-                      for name, ds in partition_nodes(partitions).items()]
+            if loc.local:
+                writes = [ds.drop_encoding().to_zarr(tmp, group=name, mode="w", zarr_format=3,
+                                                     consolidated=False, compute=False)
+                          for name, ds in nodes.items()]
+            else:
+                writes = [_store_lazy(zarr.open_group(tmp, mode="r+", zarr_format=3,
+                                                      use_consolidated=True), nodes)]
         # an own thread pool, shut down before a failure leaves this block: no task still
         # running may write into the temporary after atomic_output has removed it
         pool = ThreadPoolExecutor(dask.config.get("num_workers", None) or os.cpu_count() or 1)
@@ -644,8 +774,10 @@ def write_store(
                 results = dask.compute(*writes, *compute_with)
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
-        root = zarr.open_group(str(tmp), mode="r+", zarr_format=3)
-        if final_attrs is not None:
-            root.attrs.update(dict(final_attrs(tuple(results[len(writes):]))))
-        finish_store(tmp)
-    return Path(path)
+        # (quiet: a remote store's consolidated metadata are parsed and written again here)
+        with quiet_zarr_warnings():
+            root = zarr.open_group(tmp, mode="r+", zarr_format=3)
+            if final_attrs is not None:
+                root.attrs.update(dict(final_attrs(tuple(results[len(writes):]))))
+        finish_store(loc, consolidated=not loc.local)
+    return output_path(loc if not loc.local else path)

@@ -34,6 +34,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from xstack._cluster import cap_numba_threads
 from xstack.coords import SPEED_OF_LIGHT
 
 #: Earth's rotation rate (rad per SI second), the rate of change of the hour angle.
@@ -268,6 +269,7 @@ def mean_factors(uvw: Any, weight: Any, frequency: Any, channel_width: Any,
     uniform = bool(fs.size < 2 or (np.all(ws == ws[0]) and np.all(
         np.abs(np.diff(fs) - (fs[1] - fs[0])) <= 1e-9 * np.abs(fs[1:]))))
     acc = np.zeros((l.size, freq.size))
+    cap_numba_threads()
     _mean_factors(np.ascontiguousarray(uvw[:, 0]), np.ascontiguousarray(uvw[:, 1]),
                   np.ascontiguousarray(uvw[:, 2]), np.ascontiguousarray(wt[:, order]), l, m,
                   nm1, fs, ws, dt, math.sin(dec0), math.cos(dec0), uniform, acc)

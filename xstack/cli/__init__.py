@@ -33,7 +33,9 @@ import warnings
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
+from xstack.cli._cluster import cluster_of
 from xstack.cli._output import add_common_options, error, session, warn
+from xstack.cli._storage import storage_of
 from xstack.errors import XstackError, XstackWarning
 
 #: Sub-commands in the order ``xstack --help`` lists them.
@@ -181,6 +183,12 @@ def _json_default(obj: Any) -> Any:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``xstack`` console script."""
     parser = build_parser()
+    if argv is None:
+        # the program itself (console script, python -m xstack), not an in-process call:
+        # chunk-sized arrays are returned to the OS when freed (xstack._memory)
+        from xstack._memory import bound_heap
+
+        bound_heap()
     argv = list(sys.argv[1:] if argv is None else argv)
     Parser.command = next((a for a in argv if a in COMMANDS), None)
     try:
@@ -196,9 +204,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     shown = warnings.showwarning
     warnings.showwarning = _warning_printer(sub)
     try:
-        with session(args):
+        with session(args), storage_of(args):  # --storage-options
             try:
-                status = args._run(args)
+                with cluster_of(args):  # --scheduler/--workers/DASK_SCHEDULER_ADDRESS
+                    status = args._run(args)
             except XstackError as exc:
                 error(name_flags(str(exc), exc.option, sub))
                 return 1

@@ -6,6 +6,8 @@ import argparse
 import time
 from typing import Any
 
+from xstack.cli._storage import add_storage_options
+
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -19,6 +21,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from xstack import _vocabulary as V
+from xstack.cli._storage import add_storage_options, cli_path, path_exists
 from xstack.errors import XstackError
 
 
@@ -38,18 +39,23 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "stamp / model / residual panels (FITS stamp)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --png")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 
-def _is_fits(path: Path) -> bool:
-    return path.is_file() and path.suffix.lower() in (".fits", ".fit", ".fts", ".gz")
+def _is_fits(path: Path | str) -> bool:
+    return (isinstance(path, Path) and path.is_file()
+            and path.suffix.lower() in (".fits", ".fit", ".fts", ".gz"))
 
 
 def run(args: argparse.Namespace) -> int:
     from xstack.cli import emit_json
 
-    path = Path(args.stacked)
-    if not path.exists():
+    path = cli_path(args.stacked)  # a store URL stays a URL
+    if not path_exists(path):
         raise XstackError(f"{path}: no such file or store")
     if args.png:
         from xstack._atomic import check_output

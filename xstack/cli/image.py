@@ -10,6 +10,7 @@ import numpy as np
 
 from xstack import _vocabulary as V
 from xstack.cli._data import add_data_group, with_data_group
+from xstack.cli._storage import add_storage_options, path_exists
 from xstack.errors import XstackError
 
 
@@ -60,6 +61,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     add_data_group(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 
@@ -129,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
                   progress=not args.no_progress, autocorrelations=args.autocorrelations)
     if args.pb_cutoff is not None and not 0 < args.pb_cutoff < 1:
         raise XstackError("--pb-cutoff must be between 0 and 1")
-    if not Path(args.data).exists():
+    if not path_exists(args.data):
         raise XstackError(f"{args.data}: no such store")
     mask = None
     if args.mask is not None:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from xstack.cli._storage import add_storage_options
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -20,6 +22,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    help="MeasurementSet only: the visibility column counted and compared with "
                         "the weights (DATA, CORRECTED_DATA, MODEL_DATA; default DATA)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_storage_options(p)
     return p
 
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 import warnings
-from pathlib import Path
 
 from xstack import _vocabulary as V
 from xstack.cli._data import add_data_group, with_data_group
+from xstack.cli._storage import add_storage_options, cli_path
 from xstack.errors import XstackError
 
 
@@ -68,6 +68,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true")
     add_data_group(p)
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 
@@ -85,8 +89,8 @@ def run(args: argparse.Namespace) -> int:
         raise XstackError("--profile-png needs --method mc or random")
     if args.realizations < 2 and args.method != "analytic":
         raise XstackError(f"need at least 2 realisations to estimate a scatter, got {args.realizations}")
-    data = Path(args.data)
-    domain = "image" if data.suffix.lower() in (".fits", ".fit", ".fts") else "uv"
+    data = cli_path(args.data)  # a store URL stays a URL
+    domain = "image" if str(data).lower().endswith((".fits", ".fit", ".fts")) else "uv"
     if domain == "image" and args.profile_png:
         raise XstackError("--profile-png needs visibilities (a .zarr store), not an image")
     with warnings.catch_warnings(record=True) as caught:

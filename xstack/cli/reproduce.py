@@ -33,8 +33,6 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "(default 1: the paper's size)")
     p.add_argument("--outdir", default="xstack-reproduce", metavar="DIR",
                    help="directory of the per-realisation results (default ./xstack-reproduce)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="dask scheduler address: realisations run as tasks on that cluster")
     p.add_argument("--overwrite", action="store_true",
                    help="forget earlier realisations of these types in --outdir and run all "
                         "again (default: resume)")
@@ -44,6 +42,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "run writes them at its end too)")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from xstack.cli._cluster import add_cluster_options
+
+    # on a cluster (--scheduler, --workers, DASK_SCHEDULER_ADDRESS) realisations run as tasks
+    add_cluster_options(p)
     return p
 
 
@@ -71,20 +73,14 @@ def run(args: argparse.Namespace) -> int:
     if args.overwrite:
         for n in types:
             shutil.rmtree(outdir / f"type{n}", ignore_errors=True)
-    client = None
-    if args.scheduler:
-        from distributed import Client
+    from xstack._cluster import active_client
 
-        client = Client(args.scheduler)
+    client = active_client()  # main() connected --scheduler/--workers (xstack._cluster)
     say(f"reproducing type(s) {', '.join(map(str, types))}: {args.realizations} "
         f"realisation(s) at scale {args.scale:g} in {outdir}/")
-    try:
-        res = reproduce(types, realizations=args.realizations, scale=args.scale,
-                        outdir=outdir, progress=progress_enabled() and not args.no_progress,
-                        client=client)
-    finally:
-        if client is not None:
-            client.close()
+    res = reproduce(types, realizations=args.realizations, scale=args.scale,
+                    outdir=outdir, progress=progress_enabled() and not args.no_progress,
+                    client=client)
     # the report covers every type in the directory, also those of earlier runs
     payload = {**res.to_dict(), "report": str(write_report(outdir))}
     say(f"report: {payload['report']}")

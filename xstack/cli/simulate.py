@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from xstack.cli._storage import add_storage_options
 from xstack.errors import XstackError
 
 
@@ -31,6 +32,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--print-scene", action="store_true",
                    help="print the scene (e.g. a preset) as TOML on stdout and exit: a "
                         "starting point for your own scene file")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 

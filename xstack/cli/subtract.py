@@ -7,6 +7,7 @@ from typing import Any
 
 from xstack import _vocabulary as V
 from xstack.cli._data import add_data_group, with_data_group
+from xstack.cli._storage import add_storage_options
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -30,6 +31,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     add_data_group(p)
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 

@@ -8,7 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from xstack import _vocabulary as V
+from xstack._fs import is_url
 from xstack.cli._data import add_data_group, with_data_group
+from xstack.cli._storage import add_storage_options, cli_path
 from xstack.errors import XstackError
 
 
@@ -73,11 +75,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from xstack.cli._cluster import add_cluster_options
+
+    add_cluster_options(p)
+    add_storage_options(p)
     return p
 
 
-def _stem(out: Path) -> Path:
-    return out.with_name(out.name[:-5] if out.name.endswith(".zarr") else out.name)
+def _stem(out: Path | str) -> Path | str:
+    return cli_path(str(out)[:-5] if str(out).endswith(".zarr") else str(out))  # a URL too
 
 
 def first_error(res: Any, errors: str) -> str:
@@ -107,15 +113,15 @@ def run(args: argparse.Namespace) -> int:
 
     if len(args.inputs) < 3:
         raise XstackError("need DATA... CATALOG OUT.zarr (at least three arguments)")
-    data, catalog, out = args.inputs[:-2], args.inputs[-2], Path(args.inputs[-1])
+    data, catalog, out = args.inputs[:-2], args.inputs[-2], cli_path(args.inputs[-1])
     stem = _stem(out)
-    ecsv = Path(f"{stem}_uvprofile.ecsv")
-    png = Path(args.profile_png) if args.profile_png else Path(f"{stem}_uvprofile.png")
+    ecsv = cli_path(f"{stem}_uvprofile.ecsv")
+    png = cli_path(args.profile_png) if args.profile_png else cli_path(f"{stem}_uvprofile.png")
     # everything that can be checked is checked before any computation
     for path in (out, ecsv, png):
         check_output(path, args.overwrite)
     for d in data:
-        if not Path(d).exists():
+        if not is_url(d) and not Path(d).exists():  # a URL: checked when opened
             raise XstackError(f"{d}: no such store or MeasurementSet")
     if args.profile_bins < 1:
         raise XstackError("--profile-bins must be >= 1")

@@ -291,8 +291,11 @@ def _blocks(ds: xr.Dataset) -> list[tuple[slice, slice]]:
 def _read(ds: xr.Dataset, ts: slice, bs: slice, names: Sequence[str]) -> list[np.ndarray]:
     import dask
 
+    from xstack._cluster import local_scheduler
+
     arrays = [ds[n].data[ts, bs] for n in names]
-    return [np.asarray(a) for a in dask.compute(*arrays, scheduler="threads")]
+    # threads measured best in one process; an active distributed client wins (reads there)
+    return [np.asarray(a) for a in dask.compute(*arrays, scheduler=local_scheduler("threads"))]
 
 
 def rows_of_block(uvw: np.ndarray, weight: np.ndarray, flag: np.ndarray, pols: Sequence[int],

@@ -4,7 +4,8 @@
 its arrays from casacore sequentially instead (one reader, reused buffers), so it needs the
 store created first and filled afterwards; :func:`region_store` does exactly what
 ``write_store`` does around that: same root attributes, temporary name via
-:func:`xstack._atomic.atomic_output`, ``xstack_complete`` set last, rename at the end.
+:func:`xstack._atomic.atomic_store`, ``xstack_complete`` set last, rename at the end (on an
+object store, no rename: the store is written in place, the completion flag last).
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
-from xstack._atomic import atomic_output
-from xstack.schema import finish_store, new_store_attrs, partition_nodes, quiet_zarr_warnings
+from xstack._atomic import atomic_store
+from xstack._fs import output_path
+from xstack.schema import finish_store, new_store_attrs, partition_nodes, write_skeleton
 
 _BLOSC_SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
 
@@ -34,6 +36,7 @@ def region_store(
     overwrite: bool = False,
     attrs: Mapping[str, Any] | None = None,
     encoding: Mapping[str, Mapping[str, Any]] | None = None,
+    storage_options: Mapping[str, Any] | None = None,
 ) -> Iterator[Any]:
     """Create a store whose dask-backed variables are left for the caller to fill.
 
@@ -43,32 +46,17 @@ def region_store(
     root :class:`zarr.Group` (``root[partition][variable][region] = values``). On a clean exit
     the completion flag is set and the store renamed into place; on an error or interruption
     nothing valid is left behind. ``encoding`` (variable -> zarr encoding, e.g.
-    ``{"VISIBILITY": {"compressors": None}}``) applies to every partition.
+    ``{"VISIBILITY": {"compressors": None}}``) applies to every partition. ``path`` may be a
+    URL (:mod:`xstack._fs`, options in ``storage_options``).
     """
     import zarr
 
     root_attrs = new_store_attrs(partitions, kind, attrs)
-    with atomic_output(path, overwrite=overwrite) as tmp:
-        # The skeleton (metadata and coordinates: a few dozen small objects) is built in memory
-        # and then written out in one go: through a local store every object costs a round
-        # trip to zarr's I/O thread, a third of the fixed cost of converting a small MS.
-        skeleton: dict[str, Any] = {}
-        memory = zarr.storage.MemoryStore(store_dict=skeleton)
-        root = zarr.open_group(memory, mode="w", zarr_format=3)
-        root.attrs.update(root_attrs)
-        with quiet_zarr_warnings():
-            for name, ds in partition_nodes(partitions).items():
-                enc = {k: dict(v) for k, v in (encoding or {}).items() if k in ds.variables}
-                ds.drop_encoding().to_zarr(memory, group=name, mode="w", zarr_format=3,
-                                           consolidated=False, compute=False, encoding=enc)
-        tmp.mkdir()
-        for key, value in skeleton.items():
-            file = tmp / key
-            file.parent.mkdir(parents=True, exist_ok=True)
-            file.write_bytes(value.to_bytes())
-        yield zarr.open_group(str(tmp), mode="r+", zarr_format=3)
-        finish_store(tmp)
-    return Path(path)
+    with atomic_store(path, overwrite=overwrite, storage_options=storage_options) as loc:
+        write_skeleton(loc, partition_nodes(partitions), root_attrs, encoding)
+        yield zarr.open_group(loc.zarr_store(), mode="r+", zarr_format=3)
+        finish_store(loc, consolidated=True)
+    return output_path(path)
 
 
 class ChunkFiles:

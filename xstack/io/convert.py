@@ -559,7 +559,8 @@ def convert_ms(
     chunks: Mapping[str, int] | str | None = None,
     overwrite: bool = False,
     progress: bool = False,
-) -> Path:
+    storage_options: Mapping[str, Any] | None = None,
+) -> Path | str:
     """Convert a MeasurementSet into an xstack zarr store (one partition per window x field).
 
     Parameters
@@ -567,7 +568,9 @@ def convert_ms(
     ms
         Path of the MeasurementSet (read only, never modified).
     out
-        Output ``.zarr`` directory; written atomically (temporary name, then renamed).
+        Output ``.zarr`` directory; written atomically (temporary name, then renamed). Or
+        any fsspec URL (``s3://bucket/out.zarr``...): written in place through zarr, the
+        completion flag last (an interrupted conversion never opens as a store).
     datacolumn
         Visibility column: ``DATA``, ``CORRECTED_DATA`` or ``MODEL_DATA``.
     chunks
@@ -577,11 +580,13 @@ def convert_ms(
         Replace an existing ``out``.
     progress
         Progress bar on stderr.
+    storage_options
+        Options of the output URL's filesystem (:func:`xstack._fs.locate`).
 
     Returns
     -------
-    pathlib.Path
-        ``out``. Open it with :func:`xstack.open_store`.
+    pathlib.Path or str
+        ``out`` (the URL for a remote store). Open it with :func:`xstack.open_store`.
 
     Notes
     -----
@@ -600,11 +605,10 @@ def convert_ms(
     from xstack import __version__
 
     ms_path = msread.check_ms(ms)
-    out = Path(out)
-    check_output(out, overwrite)
+    out = check_output(out, overwrite, storage_options)
     requested_chunks = parse_chunks(chunks)
     path = str(ms_path.resolve())
-    if os.path.abspath(out) == path:
+    if isinstance(out, Path) and os.path.abspath(out) == path:
         raise XstackError("the output store must not be the MeasurementSet itself")
     try:
         column, vis_dtype = check_datacolumn(path, datacolumn)
@@ -653,7 +657,7 @@ def convert_ms(
         root_attrs = {"source_ms": path, "data_column": column, "xstack_version": __version__,
                       "created_by": f"xstack {__version__} convert_ms"}
         with region_store(partitions, out, overwrite=overwrite, attrs=root_attrs,
-                          encoding=_encoding()) as root:
+                          encoding=_encoding(), storage_options=storage_options) as root:
             _fill(root, plans, specs, sizes, progress, f"convert {ms_path.name}")
         return out
     finally:

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from xstack._atomic import atomic_output, check_output
+from xstack._fs import is_url
 from xstack._progress import progress_iter
 from xstack.errors import XstackError
 from xstack.io._mswrite import create_ms, write_subtables
@@ -46,14 +47,16 @@ def padding_mask(vis: np.ndarray, weight: np.ndarray, flag: np.ndarray) -> np.nd
 
 
 def _load(arr: Any, where: str = "") -> np.ndarray:
-    """Compute one (dask) block in this thread.
+    """Compute one (dask) block in this thread (on the cluster when a client is active).
 
     A chunk that cannot be decoded (a damaged store) becomes an :class:`XstackError` naming
     it, instead of whichever exception the codec happens to raise.
     """
     try:
         if hasattr(arr, "compute"):
-            return np.asarray(arr.compute(scheduler="synchronous"))
+            from xstack._cluster import local_scheduler
+
+            return np.asarray(arr.compute(scheduler=local_scheduler("synchronous")))
         return np.asarray(arr)
     except (MemoryError, XstackError):
         raise
@@ -287,7 +290,8 @@ def export_ms(
             dish_diameters=meta["dish"], telescope_name=telescope, fields=field_rows,
             spws=spw_rows, pol_setups=meta["pols"], data_descriptions=meta["ddids"],
             time_range=meta["time_range"], n_states=1,
-            history=f"xstack {__version__} export_ms from {Path(store).resolve()}")
+            history=f"xstack {__version__} export_ms from "
+                    f"{store if is_url(store) else Path(store).resolve()}")
         # a quick self-check: the MS reopens and has its rows (catches casacore surprises)
         with pt.table(str(tmp), ack=False) as check:
             check.nrows()

@@ -38,6 +38,7 @@ from xstack._antenna import (  # noqa: F401  (re-exported: the noise API since i
     FactorisationError,
     antenna_layout,
 )
+from xstack._cluster import cap_numba_threads
 from xstack._phase import antenna_channel, antenna_phases
 from xstack._phase import cis_minus_turns as _cis_minus
 from xstack.coords import SPEED_OF_LIGHT
@@ -330,6 +331,7 @@ def group_sums(uvw: np.ndarray, frequency: np.ndarray, vis_w: np.ndarray, wsum: 
     prof = np.zeros((G, nbins))
     profm = np.zeros((G, nbins))
     if nrow and K:
+        cap_numba_threads()
         _group_numba(uvw, fc, step, even, int(max(reseed, 1)), vr, vi, wsum, row_ok, l, m, n1,
                      a, b, starts, with_model, bins_arr, int(nbins), data, model, prof, profm)
     return data, model, prof, profm
@@ -343,6 +345,7 @@ def position_sums(uvw: np.ndarray, frequency: np.ndarray, vis_w: np.ndarray, wsu
         uvw, frequency, vis_w, wsum, l, m, n_minus_1, a)
     X = np.zeros(l.size)
     if uvw.shape[0] and l.size:
+        cap_numba_threads()
         _position_numba(uvw, fc, step, even, int(max(reseed, 1)), vr, vi, row_ok, l, m, n1, a, X)
     return X
 
@@ -394,6 +397,7 @@ def group_sums_antenna(layout: AntennaLayout, frequency: np.ndarray, vis_w: np.n
     data, model = np.zeros(G), np.zeros(G)
     prof, profm = np.zeros((G, nbins)), np.zeros((G, nbins))
     if nrow and K:
+        cap_numba_threads()
         _group_antenna_numba(np.ascontiguousarray(layout.uvw), layout.used, layout.antenna1,
                              layout.antenna2, fc, step, even, int(max(reseed, 1)), vr, vi, wsum,
                              row_ok, l, m, n1, a, b, starts, with_model, bins_arr, int(nbins),

@@ -36,6 +36,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from xstack._cluster import cap_numba_threads
 from xstack.coords import SPEED_OF_LIGHT
 from xstack.smearing import delay_rate_scalar, factor_scalar
 
@@ -365,6 +366,7 @@ def model_visibilities_antenna(antenna_uvw: Any, antenna1: Any, antenna2: Any, f
         fs = np.ascontiguousarray(freq[order])
         tmp = np.zeros((nt, a1.size, nchan), dtype=np.complex128)
         kern = _antenna_parallel if parallel else _antenna_serial
+        cap_numba_threads()  # on a dask worker: its threads, not every core
         swidth = np.zeros(nchan)
         if channel_width is not None:
             swidth = np.ascontiguousarray(np.broadcast_to(
@@ -474,6 +476,7 @@ def model_visibilities(uvw: Any, frequency: Any, l: Any, m: Any, n_minus_1: Any,
         nm1_r = np.ascontiguousarray(nm1[rest]) if has_w else np.zeros(int(rest.sum()))
         tmp = np.zeros((nrow, nchan), dtype=np.complex128)
         kern = _kernel_parallel if parallel else _kernel_serial
+        cap_numba_threads()  # on a dask worker: its threads, not every core
         kern(u, v, w, has_w, fs, uniform, np.ascontiguousarray(l[rest]),
              np.ascontiguousarray(m[rest]), nm1_r, np.ascontiguousarray(amp[rest][:, order]),
              np.ascontiguousarray(gcoef[rest]), has_g, tmp)

@@ -520,8 +520,13 @@ def _simulate_lazy(scene: Any, *, seed: int, scale: float
     return parts, plan.catalogs, plan
 
 
-def catalog_path(store: str | os.PathLike, population: str) -> Path:
-    """``OUT.zarr`` -> ``OUT.<population>.ecsv`` (beside the store)."""
+def catalog_path(store: str | os.PathLike, population: str) -> Path | str:
+    """``OUT.zarr`` -> ``OUT.<population>.ecsv`` (beside the store; a URL for a store URL)."""
+    from xstack._fs import is_url
+
+    if is_url(store):  # Path would fold the // of s3://
+        text = str(store).rstrip("/")
+        return f"{text[:-5] if text.endswith('.zarr') else text}.{population}.ecsv"
     store = Path(store)
     stem = store.name[:-5] if store.name.endswith(".zarr") else store.name
     return store.parent / f"{stem}.{population}.ecsv"
@@ -554,8 +559,9 @@ def simulate(scene: Scene | dict | str | os.PathLike, out: str | os.PathLike, *,
         For a bad scene (naming the field) or existing outputs; nothing is written then.
     """
     from xstack._atomic import atomic_output, check_output
+    from xstack._fs import output_path
 
-    out = Path(out)
+    out = output_path(out)  # a Path, or a store URL as it is
     parts, cats, plan = _simulate_lazy(scene, seed=seed, scale=scale)
     paths = {name: catalog_path(out, name) for name in cats}
     check_output(out, overwrite)
@@ -563,7 +569,8 @@ def simulate(scene: Scene | dict | str | os.PathLike, out: str | os.PathLike, *,
         check_output(p, overwrite)
     attrs = {"simulation": {"scene": plan.scene.to_dict(), "seed": int(seed),
                             "scale": float(scale), "steps": sorted(plan.steps),
-                            "catalogs": {k: v.name for k, v in paths.items()}}}
+                            "catalogs": {k: str(v).rsplit("/", 1)[-1]
+                                         for k, v in paths.items()}}}
     write_store(parts, out, overwrite=overwrite, attrs=attrs, progress=progress,
                 description="simulating")
     for name, table in cats.items():

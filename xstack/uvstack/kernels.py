@@ -51,6 +51,7 @@ import numba
 import numpy as np
 
 from xstack._antenna import ANTENNA_TOL_RAD, FactorisationError, antenna_layout
+from xstack._cluster import cap_numba_threads
 from xstack._phase import antenna_channel, antenna_phases
 from xstack._phase import cis_minus_turns as _cis_minus_turns
 from xstack.coords import SPEED_OF_LIGHT
@@ -281,6 +282,7 @@ def phasor_from_coefficients(uvw, frequency, l, m, n_minus_1, coef, *,
     # the recurrence step must be the exact spacing of the frequency grid
     step = dt((frequency[1] - frequency[0]) / SPEED_OF_LIGHT) if nchan > 1 else dt(0.0)
     coef_t = np.ascontiguousarray(coef.T)
+    cap_numba_threads()
     with _KERNEL_LOCK:
         _phasor_numba(uvw_c, fc, l_c, m_c, n_c, coef_t, step, even, max(1, int(reseed)),
                       out_re, out_im)
@@ -368,6 +370,7 @@ def phasor_antenna(uvw, frequency, l, m, n_minus_1, coef, antenna1, antenna2, *,
     step = (freq[1] - freq[0]) / SPEED_OF_LIGHT if nchan > 1 else 0.0
     out_re = np.zeros((nrow, nchan))
     out_im = np.zeros((nrow, nchan))
+    cap_numba_threads()
     with _KERNEL_LOCK:
         _phasor_antenna_numba(ant_uvw, layout.used, layout.antenna1, layout.antenna2,
                               layout.rows, freq / SPEED_OF_LIGHT, l_c, m_c, n_c,
@@ -576,6 +579,7 @@ def stack_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None, noise=Non
                       or nrow % nz.shape[0]):
         raise ValueError(f"noise must have shape (nbl, {npol}, 3) with nbl dividing {nrow} "
                          f"rows, got {nz.shape}")
+    cap_numba_threads()
     with _KERNEL_LOCK:
         return _sums_numba(vis, weight, flag, ph, has_phasor, pm, um, has_uv, nz, has_noise)
 

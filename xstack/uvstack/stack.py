@@ -30,6 +30,7 @@ from xstack import _options as _opt
 from xstack import _vocabulary
 from xstack._antenna import ANTENNA_TOL_RAD, MIN_ROWS_PER_ANTENNA
 from xstack._inputs import Positions, grouped_partitions
+from xstack._lazy import LazyResult
 from xstack._result import Result
 from xstack._scatter import EMPIRICAL_TOLERANCE
 from xstack._select import (
@@ -1082,7 +1083,8 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
             noise_image: Any = None, polarizations: Any = "parallel", engine: str = "auto",
             out: str | os.PathLike | None = None, overwrite: bool = False,
             progress: bool = False, antenna_tol_rad: float = ANTENNA_TOL_RAD,
-            autocorrelations: bool = False, smearing: str = "auto") -> StackResult:
+            autocorrelations: bool = False, smearing: str = "auto",
+            compute: bool = True) -> StackResult | LazyResult:
     """Stack visibilities at catalog positions (paper eq. 4) and estimate the stacked flux.
 
     Parameters
@@ -1157,10 +1159,16 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
         L_k(nu) of each position (weighted mean smearing factor over its pointing's
         visibilities, from a subsample of rows) divides its coefficient like A_k;
         ``positions["smearing_loss"]`` holds 1 - L_k at the mean frequency.
+    compute
+        ``False``: plan the stack (catalog, weights, beams; no visibility is read) and return
+        a :class:`xstack._lazy.LazyResult` whose flux pass runs later, together with other
+        lazy results in one pass over shared data: ``xstack.compute(a, b)`` or
+        ``dask.compute(a, b)`` (on the active distributed Client, if any). Not with ``out``.
 
     Returns
     -------
     StackResult
+        Or, with ``compute=False``, a lazy result that computes to it.
 
     Raises
     ------
@@ -1177,7 +1185,28 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
         uvmax=uvmax, sigma=sigma, noise_image=noise_image, polarizations=polarizations,
         engine=engine, out=out, overwrite=overwrite, progress=progress,
         antenna_tol_rad=antenna_tol_rad, autocorrelations=autocorrelations, smearing=smearing)
+    if not compute and out is not None:
+        raise OptionError("a lazy stack (compute=False) writes no store: stack with "
+                          "compute=True to write out", option="out")
     inputs = _load(data, positions, options)  # the catalog; the data opened lazily
     plan = _plan(inputs, options)  # what enters, with which weight (no visibility read)
+    if not compute:
+        return _lazy(plan, options)
     measured = _compute(plan, options)  # the one pass over the data (and the write)
     return _assemble(plan, measured, options)
+
+
+def _lazy(plan: _StackPlan, options: UvstackOptions) -> LazyResult:
+    """The flux pass of ``plan`` as a dask collection that finishes into a StackResult."""
+    stacked: dict[str, xr.Dataset] = {}
+    sums_graph = []
+    for p in plan.active:
+        ds_out, sums = _stacked_dataset(p, options, plan.center, plan.record, plan.inputs.ra,
+                                        plan.inputs.dec)
+        stacked[p.name] = ds_out
+        sums_graph.append(sums)
+
+    def finish(results: list[Any]) -> StackResult:
+        return _assemble(plan, _measure(tuple(results), plan, options, stacked), options)
+
+    return LazyResult(sums_graph, finish, "stack_uv")

@@ -514,19 +514,6 @@ def _finish_empirical(total):
     return total
 
 
-def _block_sums_with_phasor(vis, weight, flag, uvw, ph, frequency, pol_mask, lo, hi):
-    nt, nb, nc, npol = vis.shape
-    n = nt * nb
-    noise = _block_noise(vis, weight, flag, pol_mask)
-    vis, weight, flag = (a.reshape(n, nc, npol) for a in (vis, weight, flag))
-    mask = uv_range_mask(uvw.reshape(n, 3), frequency, lo, hi)
-    ph = ph.reshape(n, nc + 1)
-    total = _finish_empirical(kernels.stack_sums(vis, weight, flag, ph[:, :nc], pol_mask, mask,
-                                                 noise))
-    codes = np.bincount(ph[:, nc].real.astype(np.int64), minlength=len(_ROW_ENGINES))
-    return np.concatenate([total, codes.astype(np.float64)])[None, None, :]
-
-
 def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_rad, pol_mask,
                 lo, hi):
     total = np.zeros(_NSUMS)
@@ -548,6 +535,44 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
         total += kernels.stack_sums(v, w, f, ph.reshape(n, nc), pol_mask, mask,
                                     None if noise is None else noise[bsl])
     return np.concatenate([_finish_empirical(total), _engine_rows(counts)])[None, None, :]
+
+
+def _block_stack_and_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_rad,
+                          pol_mask, lo, hi):
+    """The stacked visibilities and the flux sums of one chunk, from one phasor evaluation
+    per row step (:func:`_steps`): the chunk's phasor is never held whole, so writing the
+    stack costs one output chunk beside the input, and the sums add in the same order as the
+    flux-only pass (:func:`_block_sums`), so both give the same flux to the last bit.
+
+    Returns ``(stacked, sums)``: stacked (nt, nb, nchan, npol) in the input's precision, sums
+    (1, 1, NSUMS + engines) as :func:`_block_sums`.
+    """
+    stacked = np.empty_like(vis)
+    total = np.zeros(_NSUMS)
+    counts: dict[str, int] = {}
+    pm = np.asarray(pol_mask, dtype=bool)
+    noise = _block_noise(vis, weight, flag, pm)
+    for tsl, bsl in _steps(*vis.shape[:2]):
+        v, w, f, x = (a[tsl, bsl] for a in (vis, weight, flag, uvw))
+        nt, nb, nc, npol = v.shape
+        n = nt * nb
+        ph, used = _block_phasor(x, params, frequency, engine, _antennas(a1, a2, bsl),
+                                 tol_rad=tol_rad)
+        counts[used] = counts.get(used, 0) + n
+        stacked[tsl, bsl] = _block_apply_phasor(v, ph)
+        mask = uv_range_mask(x.reshape(n, 3), frequency, lo, hi)
+        total += kernels.stack_sums(v.reshape(n, nc, npol), w.reshape(n, nc, npol),
+                                    f.reshape(n, nc, npol), ph.reshape(n, nc), pol_mask, mask,
+                                    None if noise is None else noise[bsl])
+    return stacked, np.concatenate([_finish_empirical(total), _engine_rows(counts)])[None, None, :]
+
+
+def _first(pair):
+    return pair[0]
+
+
+def _second(pair):
+    return pair[1]
 
 
 # --- planning -----------------------------------------------------------------------------
@@ -905,19 +930,29 @@ def _stacked_dataset(plan: _Plan, options: UvstackOptions, stack_center, record,
     sum_kwargs = dict(dtype=np.float64, concatenate=True, new_axes={"s": nsums},
                       adjust_chunks={"t": 1, "b": 1}, frequency=freq, pol_mask=plan.pol_mask,
                       lo=options.uv_lo, hi=options.uv_hi)
-    # "e": the channels plus the engine column (one chunk). Computed only when the stacked
-    # visibilities are (a written store, or the caller's own compute)
-    ph = da.blockwise(_block_phasor_chunk, "tbe", uvw, "tbx", params, "kz", *ants,
-                      dtype=np.complex128, concatenate=True, new_axes={"e": freq.size + 1},
-                      frequency=freq, engine=engine, tol_rad=tol)
-    # a sliced view (not a contracted index): keeps dask's chunk-by-chunk order
-    stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph[..., :-1], "tbc",
-                           dtype=vis.dtype)
     if shared_phasor:
-        sums = da.blockwise(_block_sums_with_phasor, "tbs", vis, "tbcp", ds["WEIGHT"].data,
-                            "tbcp", ds["FLAG"].data, "tbcp", uvw, "tbx", ph, "tbe",
-                            **sum_kwargs).sum(axis=(0, 1))
+        # one task per chunk makes both (a tuple), two getters split it: the phasor is
+        # evaluated once per row and never held for a whole chunk (bench_uvstack_memory.py)
+        pair = da.blockwise(_block_stack_and_sums, "tb", vis, "tbcp", ds["WEIGHT"].data, "tbcp",
+                            ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", *ants,
+                            dtype=object, meta=np.empty((0, 0), dtype=object), concatenate=True,
+                            frequency=freq, engine=engine, tol_rad=tol, pol_mask=plan.pol_mask,
+                            lo=options.uv_lo, hi=options.uv_hi)
+        stacked = da.blockwise(_first, "tbcp", pair, "tb", dtype=vis.dtype,
+                               new_axes={"c": vis.shape[2], "p": vis.shape[3]},
+                               meta=np.empty((0, 0, 0, 0), dtype=vis.dtype))
+        sums = da.blockwise(_second, "tbs", pair, "tb", dtype=np.float64, new_axes={"s": nsums},
+                            adjust_chunks={"t": 1, "b": 1},
+                            meta=np.empty((0, 0, 0), dtype=np.float64)).sum(axis=(0, 1))
     else:
+        # "e": the channels plus the engine column (one chunk). Computed only when the stacked
+        # visibilities are (the caller's own compute of a flux-only stack)
+        ph = da.blockwise(_block_phasor_chunk, "tbe", uvw, "tbx", params, "kz", *ants,
+                          dtype=np.complex128, concatenate=True, new_axes={"e": freq.size + 1},
+                          frequency=freq, engine=engine, tol_rad=tol)
+        # a sliced view (not a contracted index): keeps dask's chunk-by-chunk order
+        stacked = da.blockwise(_block_apply_phasor, "tbcp", vis, "tbcp", ph[..., :-1], "tbc",
+                               dtype=vis.dtype)
         sums = da.blockwise(_block_sums, "tbs", vis, "tbcp", ds["WEIGHT"].data, "tbcp",
                             ds["FLAG"].data, "tbcp", uvw, "tbx", params, "kz", *ants,
                             engine=engine, tol_rad=tol, **sum_kwargs).sum(axis=(0, 1))
@@ -991,10 +1026,13 @@ def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
         else:
             from xstack.schema import write_store
 
-            # one pass: the flux sums share each chunk's phasor with the written stack
-            write_store(stacked, options.out, kind="stacked", overwrite=options.overwrite,
-                        progress=options.progress, description="uvstack",
-                        compute_with=sums_graph, final_attrs=measure)
+            # one pass: one task per chunk makes the stacked chunk and its flux sums. xarray's
+            # write optimises its sources on their own (da.store); low-level fusion would fold
+            # that task into the write's chain and again into the sums', computing it twice
+            with dask.config.set({"optimization.fuse.active": False}):
+                write_store(stacked, options.out, kind="stacked", overwrite=options.overwrite,
+                            progress=options.progress, description="uvstack",
+                            compute_with=sums_graph, final_attrs=measure)
     except MemoryError as exc:
         if options.engine != "nufft":
             raise

@@ -329,8 +329,13 @@ def test_cli_image_and_noise_on_the_cluster(cluster, data, tmp_path, capsys):
                     + ["--scheduler", cluster.scheduler_address]) == 0
         got = _json(capsys)
         assert _tasks(cluster) - before > 0, argv[0]
-        # the image's gridder threads add in the order they finish: equal to rounding
-        _same(got, ref, rel=1e-10 if argv[0] == "image" else 0)
+        if argv[0] == "image":
+            # the gridder's threads add in the order they finish (the images agree to rounding),
+            # and the beam is a least-squares fit to the PSF: a rounding-level change of the PSF
+            # moves the fitted beam by up to the fit's tolerance
+            _same(got, ref, rel=1e-6)
+        else:
+            _same(got, ref, rel=0)
 
 
 def test_cli_honours_dask_scheduler_address(cluster, data, tmp_path, capsys, monkeypatch):

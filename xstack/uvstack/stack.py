@@ -515,7 +515,11 @@ def _finish_empirical(total):
 
 
 def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_rad, pol_mask,
-                lo, hi):
+                lo, hi, stacked=None):
+    """The flux sums of one chunk (1, 1, NSUMS + engines), the phasor evaluated per row step
+    (:func:`_steps`). With ``stacked`` (an array like ``vis``) the stacked visibilities are
+    written into it from the same phasor; without, the phasor is evaluated only for the rows
+    that carry weight in the selected polarizations."""
     total = np.zeros(_NSUMS)
     counts: dict[str, int] = {}
     pm = np.asarray(pol_mask, dtype=bool)
@@ -524,14 +528,15 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
         v, w, f, x = (a[tsl, bsl] for a in (vis, weight, flag, uvw))
         nt, nb, nc, npol = v.shape
         n = nt * nb
-        v, w, f, x = v.reshape(n, nc, npol), w.reshape(n, nc, npol), f.reshape(n, nc, npol), \
-            x.reshape(n, 3)
+        v, w, f = v.reshape(n, nc, npol), w.reshape(n, nc, npol), f.reshape(n, nc, npol)
         # the flux needs the phasor only where some selected visibility carries weight
-        rows = np.any(~f[:, :, pm] & (w[:, :, pm] > 0), axis=(1, 2))
-        ph, used = _block_phasor(x.reshape(nt, nb, 3), params, frequency, engine,
-                                 _antennas(a1, a2, bsl), rows=rows, tol_rad=tol_rad)
+        rows = None if stacked is not None else np.any(~f[:, :, pm] & (w[:, :, pm] > 0), axis=(1, 2))
+        ph, used = _block_phasor(x, params, frequency, engine, _antennas(a1, a2, bsl), rows=rows,
+                                 tol_rad=tol_rad)
         counts[used] = counts.get(used, 0) + n
-        mask = uv_range_mask(x, frequency, lo, hi)
+        if stacked is not None:
+            stacked[tsl, bsl] = _block_apply_phasor(v.reshape(nt, nb, nc, npol), ph)
+        mask = uv_range_mask(x.reshape(n, 3), frequency, lo, hi)
         total += kernels.stack_sums(v, w, f, ph.reshape(n, nc), pol_mask, mask,
                                     None if noise is None else noise[bsl])
     return np.concatenate([_finish_empirical(total), _engine_rows(counts)])[None, None, :]
@@ -540,31 +545,17 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
 def _block_stack_and_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_rad,
                           pol_mask, lo, hi):
     """The stacked visibilities and the flux sums of one chunk, from one phasor evaluation
-    per row step (:func:`_steps`): the chunk's phasor is never held whole, so writing the
-    stack costs one output chunk beside the input, and the sums add in the same order as the
-    flux-only pass (:func:`_block_sums`), so both give the same flux to the last bit.
+    per row step: the chunk's phasor is never held whole, so writing the stack costs one
+    output chunk beside the input, and the sums add in the same order as the flux-only pass
+    (:func:`_block_sums`), so both give the same flux to the last bit.
 
     Returns ``(stacked, sums)``: stacked (nt, nb, nchan, npol) in the input's precision, sums
     (1, 1, NSUMS + engines) as :func:`_block_sums`.
     """
     stacked = np.empty_like(vis)
-    total = np.zeros(_NSUMS)
-    counts: dict[str, int] = {}
-    pm = np.asarray(pol_mask, dtype=bool)
-    noise = _block_noise(vis, weight, flag, pm)
-    for tsl, bsl in _steps(*vis.shape[:2]):
-        v, w, f, x = (a[tsl, bsl] for a in (vis, weight, flag, uvw))
-        nt, nb, nc, npol = v.shape
-        n = nt * nb
-        ph, used = _block_phasor(x, params, frequency, engine, _antennas(a1, a2, bsl),
-                                 tol_rad=tol_rad)
-        counts[used] = counts.get(used, 0) + n
-        stacked[tsl, bsl] = _block_apply_phasor(v, ph)
-        mask = uv_range_mask(x.reshape(n, 3), frequency, lo, hi)
-        total += kernels.stack_sums(v.reshape(n, nc, npol), w.reshape(n, nc, npol),
-                                    f.reshape(n, nc, npol), ph.reshape(n, nc), pol_mask, mask,
-                                    None if noise is None else noise[bsl])
-    return stacked, np.concatenate([_finish_empirical(total), _engine_rows(counts)])[None, None, :]
+    sums = _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_rad,
+                       pol_mask, lo, hi, stacked=stacked)
+    return stacked, sums
 
 
 def _first(pair):

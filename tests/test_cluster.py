@@ -89,8 +89,8 @@ def _tasks(cluster) -> int:
 
 
 def _same(got, ref, rel: float = 1e-12) -> None:
-    """Equal JSON-like results: floats to ``rel`` (numba's parallel sums depend on the thread
-    count, 1 per worker on the cluster), paths with 'got' for 'ref', the rest exactly."""
+    """Equal JSON-like results: floats to ``rel`` (0: bitwise), paths with 'got' for 'ref', the
+    rest exactly."""
     if isinstance(ref, dict):
         assert isinstance(got, dict) and set(got) == set(ref), (got, ref)
         for k in ref:
@@ -119,16 +119,16 @@ def test_use_cluster_makes_the_client_the_default(cluster):
 
 
 def test_uvstack_on_cluster_equals_threaded(cluster, data, tmp_path):
-    """Flux and weights to 1e-12 relative, not bitwise: numba's parallel sums split the rows
-    by thread count (1 per worker here, every core in the threaded run). The stacked
-    visibilities (per-row products) are bitwise equal."""
+    """Flux and weights bitwise equal although the threaded run's kernels use every core and
+    the workers' one thread each (the flux sums are fixed-size row blocks added in order:
+    tests/test_uvstack_threads_bitwise.py); the stacked visibilities too."""
     store, cat = data
     ref = xstack.stack_uv(store, str(cat), out=tmp_path / "ref.zarr")
     before = _tasks(cluster)
     with use_cluster(cluster.scheduler_address):
         got = xstack.stack_uv(store, str(cat), out=tmp_path / "got.zarr")
     assert _tasks(cluster) > before
-    _same(got.to_dict(), ref.to_dict())
+    _same(got.to_dict(), ref.to_dict(), rel=0)
     a = open_store(tmp_path / "ref.zarr")["spw0_field0"]["VISIBILITY"].values
     b = open_store(tmp_path / "got.zarr")["spw0_field0"]["VISIBILITY"].values
     np.testing.assert_array_equal(a, b)  # per-row phasors: no reduction, bitwise
@@ -140,16 +140,16 @@ def test_uvstack_on_cluster_equals_threaded(cluster, data, tmp_path):
 
 
 def test_make_image_on_cluster_equals_threaded(cluster, data):
-    """Bitwise: the blocks are read on the workers, gridded in this process in the same order."""
+    """The chunks are read and gridded by tasks on the workers (one per batch of chunks; more
+    in tests/test_imaging_distributed.py), the partial images summed there."""
     store, _ = data
     ref = xstack.make_image(store, size=64, cell_arcsec=2.0)
     before = _tasks(cluster)
     with use_cluster(cluster.scheduler_address):
         got = xstack.make_image(store, size=64, cell_arcsec=2.0)
-    # each of the 4 VISIBILITY chunks read on the cluster (the threaded scheduler was
-    # hard-coded: only metadata reached the cluster)
-    reads = [k for k in cluster.counter.keys[before:] if "VISIBILITY" in k]
-    assert len(reads) >= 4, reads
+    # the gridding ran as a task on the cluster (before: read there, gridded in this process)
+    grids = [k for k in cluster.counter.keys[before:] if k.startswith("xstack-image-grid")]
+    assert len(grids) >= 1, cluster.counter.keys[before:]
     # ducc0's gridder adds its threads' tiles into the grid in the order they finish, so two
     # runs - threaded or on a cluster - agree to rounding (measured: 2e-16 to 1.4e-14 of the peak)
     for a, b in ((got.image, ref.image), (got.psf, ref.psf)):
@@ -312,7 +312,7 @@ def test_cli_scheduler_runs_on_the_cluster(cluster, data, tmp_path, capsys):
                              cluster.scheduler_address)) == 0
     got = _json(capsys)
     assert _tasks(cluster) - before > 0
-    _same(got, ref)
+    _same(got, ref, rel=0)
     assert active_client() is None  # the command's connection is closed
 
 
@@ -345,7 +345,7 @@ def test_cli_honours_dask_scheduler_address(cluster, data, tmp_path, capsys, mon
     before = _tasks(cluster)
     assert main(_uvstack_cli(data, tmp_path / "got.zarr")) == 0
     assert _tasks(cluster) - before > 0
-    _same(_json(capsys), ref)
+    _same(_json(capsys), ref, rel=0)
 
 
 def test_cli_bad_address_is_one_line(data, tmp_path, capsys):
@@ -382,7 +382,7 @@ def test_cli_workers_starts_and_closes_a_local_cluster(data, tmp_path, capsys):
     assert main(_uvstack_cli(data, tmp_path / "ref.zarr")) == 0
     ref = _json(capsys)
     assert main(_uvstack_cli(data, tmp_path / "got.zarr", "--workers", "2")) == 0
-    _same(_json(capsys), ref)
+    _same(_json(capsys), ref, rel=0)
     assert active_client() is None
 
 
@@ -406,7 +406,7 @@ def test_cli_reproduce_realisations_run_as_tasks(cluster, tmp_path, capsys):
 @pytest.mark.slow
 def test_killed_worker_mid_stack_same_answer(data, tmp_path):
     """SIGKILL one of 2 workers while the stack runs: the nanny restarts it, the scheduler
-    reruns its tasks: flux equal to the threaded run's to 1e-12, the output bitwise."""
+    reruns its tasks: flux and output bitwise equal to the threaded run's."""
     import signal
 
     ds = make_stack_partition(n_time=64, n_ant=10, n_chan=8, sigma=0.01, seed=5)
@@ -436,6 +436,6 @@ def test_killed_worker_mid_stack_same_answer(data, tmp_path):
     assert killed, "no worker was killed"
     print("killed a worker after", killed[0], "finished tasks of", counter.finished)
     assert counter.finished > killed[0]  # the stack went on after the kill
-    _same(got.to_dict(), ref.to_dict())  # numba's thread count: 1e-12 (see the uvstack test)
+    _same(got.to_dict(), ref.to_dict(), rel=0)
     np.testing.assert_array_equal(open_store(tmp_path / "got.zarr")["p"]["VISIBILITY"].values,
                                   open_store(tmp_path / "ref.zarr")["p"]["VISIBILITY"].values)

@@ -477,59 +477,81 @@ def weighted_sums(vis, weight, flag, phasor, pol_mask=None, uv_mask=None) -> tup
     return float(s[0]), float(s[1])
 
 
+#: Rows per partial sum of :func:`stack_sums`. The rows are cut into blocks of this fixed
+#: size, the blocks summed in parallel and their sums added in order, so the result is the
+#: same to the last bit whatever the number of threads (a prange reduction splits the rows
+#: by thread count: ~1e-16 relative differences between a laptop and a cluster's workers).
+SUM_BLOCK_ROWS = 512
+
+
 @numba.njit(parallel=True, cache=True)
 def _sums_numba(vis, weight, flag, phasor, has_phasor, pol_mask, uv_mask, has_uv, noise,
                 has_noise):
-    """One pass, no temporaries: the NSUMS sums of :func:`stack_sums`."""
+    """One pass, no temporaries beyond the block sums: the NSUMS sums of :func:`stack_sums`."""
     nrow, nchan, npol = vis.shape
     nbl = noise.shape[0]
-    s0 = 0.0
-    s1 = 0.0
-    s2 = 0.0
-    s3 = 0.0
-    s4 = 0.0
-    s5 = 0.0
-    s6 = 0.0
-    s7 = 0.0
-    for r in numba.prange(nrow):
-        b = r % nbl
-        for c in range(nchan):
-            if has_uv and not uv_mask[r, c]:
-                continue
-            pr = 1.0
-            pi = 0.0
-            if has_phasor:
-                pr = phasor[r, c].real
-                pi = phasor[r, c].imag
-            p2 = pr * pr + pi * pi
-            for p in range(npol):
-                if not pol_mask[p] or flag[r, c, p]:
+    nblock = (nrow + SUM_BLOCK_ROWS - 1) // SUM_BLOCK_ROWS
+    part = np.zeros((nblock, 8))
+    for blk in numba.prange(nblock):
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        s3 = 0.0
+        s4 = 0.0
+        s5 = 0.0
+        s6 = 0.0
+        s7 = 0.0
+        for r in range(blk * SUM_BLOCK_ROWS, min(nrow, (blk + 1) * SUM_BLOCK_ROWS)):
+            b = r % nbl
+            for c in range(nchan):
+                if has_uv and not uv_mask[r, c]:
                     continue
-                w = np.float64(weight[r, c, p])
-                if not w > 0:
-                    continue
-                vr = np.float64(vis[r, c, p].real)
-                vi = np.float64(vis[r, c, p].imag)
-                # NaN/inf data under flags (or with zero weight) never reach the sums
-                if not (math.isfinite(vr) and math.isfinite(vi)):
-                    continue
-                s0 += w * (vr * pr - vi * pi)
-                s1 += w
-                s2 += w * p2
-                s3 += w * (vr * pi + vi * pr)
-                s4 += 1.0
-                if has_noise:
-                    # measured sigma^2 = a + b / w (xstack._scatter.noise_model)
-                    s5 += w * (w * noise[b, p, 0] + noise[b, p, 1]) * p2
-                    kind = noise[b, p, 2]
-                    if kind == 1.0:
-                        s6 += 1.0
-                    elif kind == 2.0:
+                pr = 1.0
+                pi = 0.0
+                if has_phasor:
+                    pr = phasor[r, c].real
+                    pi = phasor[r, c].imag
+                p2 = pr * pr + pi * pi
+                for p in range(npol):
+                    if not pol_mask[p] or flag[r, c, p]:
+                        continue
+                    w = np.float64(weight[r, c, p])
+                    if not w > 0:
+                        continue
+                    vr = np.float64(vis[r, c, p].real)
+                    vi = np.float64(vis[r, c, p].imag)
+                    # NaN/inf data under flags (or with zero weight) never reach the sums
+                    if not (math.isfinite(vr) and math.isfinite(vi)):
+                        continue
+                    s0 += w * (vr * pr - vi * pi)
+                    s1 += w
+                    s2 += w * p2
+                    s3 += w * (vr * pi + vi * pr)
+                    s4 += 1.0
+                    if has_noise:
+                        # measured sigma^2 = a + b / w (xstack._scatter.noise_model)
+                        s5 += w * (w * noise[b, p, 0] + noise[b, p, 1]) * p2
+                        kind = noise[b, p, 2]
+                        if kind == 1.0:
+                            s6 += 1.0
+                        elif kind == 2.0:
+                            s7 += 1.0
+                    else:
+                        s5 += w * p2
                         s7 += 1.0
-                else:
-                    s5 += w * p2
-                    s7 += 1.0
-    return np.array([s0, s1, s2, s3, s4, s5, s6, s7])
+        part[blk, 0] = s0
+        part[blk, 1] = s1
+        part[blk, 2] = s2
+        part[blk, 3] = s3
+        part[blk, 4] = s4
+        part[blk, 5] = s5
+        part[blk, 6] = s6
+        part[blk, 7] = s7
+    total = np.zeros(8)
+    for blk in range(nblock):  # in order, however prange shared the blocks out
+        for j in range(8):
+            total[j] += part[blk, j]
+    return total
 
 
 #: Number of sums returned by :func:`stack_sums`.

@@ -37,6 +37,7 @@ def region_store(
     attrs: Mapping[str, Any] | None = None,
     encoding: Mapping[str, Mapping[str, Any]] | None = None,
     storage_options: Mapping[str, Any] | None = None,
+    with_location: bool = False,
 ) -> Iterator[Any]:
     """Create a store whose dask-backed variables are left for the caller to fill.
 
@@ -47,14 +48,17 @@ def region_store(
     the completion flag is set and the store renamed into place; on an error or interruption
     nothing valid is left behind. ``encoding`` (variable -> zarr encoding, e.g.
     ``{"VISIBILITY": {"compressors": None}}``) applies to every partition. ``path`` may be a
-    URL (:mod:`xstack._fs`, options in ``storage_options``).
+    URL (:mod:`xstack._fs`, options in ``storage_options``). With ``with_location`` the block
+    gets ``(root, location)``: the :class:`xstack._fs.Location` being written (the temporary
+    one for a local store), for writers in other processes to open it themselves.
     """
     import zarr
 
     root_attrs = new_store_attrs(partitions, kind, attrs)
     with atomic_store(path, overwrite=overwrite, storage_options=storage_options) as loc:
         write_skeleton(loc, partition_nodes(partitions), root_attrs, encoding)
-        yield zarr.open_group(loc.zarr_store(), mode="r+", zarr_format=3)
+        root = zarr.open_group(loc.zarr_store(), mode="r+", zarr_format=3)
+        yield (root, loc) if with_location else root
         finish_store(loc, consolidated=True)
     return output_path(path)
 

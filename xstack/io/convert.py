@@ -13,6 +13,11 @@ protocol of :func:`xstack.schema.write_store` (temporary name, completion flag l
 rename). Peak memory is therefore two chunks plus a small per-row index (~50 bytes per MS
 row), never the whole MS.
 
+With a ``dask.distributed`` client active, the calling process plans the partitions and
+creates the store as above, and the chunks are read and written by tasks in the worker
+processes (:func:`_fill_on_cluster`; each a run of whole time chunks, the same streaming),
+the completion flag written last once all have finished.
+
 Partitions are one per (spectral window, field) - strictly per DATA_DESC_ID - and one per
 scan as well where a single time grid would be irregular: scans with different integration
 times, or the same (time, baseline) cell more than once.
@@ -20,9 +25,12 @@ times, or the same (time, baseline) cell more than once.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import threading
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from xstack._atomic import check_output
+from xstack._cluster import active_client
 from xstack.errors import XstackError
 from xstack.io import msread
 from xstack.io._store import ChunkFiles, region_store
@@ -264,15 +273,20 @@ def chunk_sizes(n_time: int, n_bl: int, n_chan: int, n_pol: int, itemsize: int,
     return min(max(1, ct), max(n_time, 1)), min(max(1, cb), max(n_bl, 1))
 
 
-def chunk_blocks(plan: PartitionPlan, ct: int, cb: int
+def chunk_blocks(plan: PartitionPlan, ct: int, cb: int, time_chunks: tuple[int, int] | None = None
                  ) -> Iterator[tuple[int, int, int, int, np.ndarray, np.ndarray, np.ndarray]]:
-    """(t0, t1, b0, b1, rows, t_index, b_index) of every chunk, rows ascending within a chunk."""
+    """(t0, t1, b0, b1, rows, t_index, b_index) of every chunk, rows ascending within a chunk.
+
+    ``time_chunks`` ``(i0, i1)``: only the chunks of time chunks ``i0:i1`` (every baseline
+    chunk of them); ``plan`` then needs to hold only their rows (:func:`_restrict`).
+    """
     nt, nb = plan.times.size, plan.antenna1.size
     t_edges = [*range(0, nt, ct), nt]
     b_edges = [*range(0, nb, cb), nb]
     # rows are sorted by time index, so a time chunk is a slice of them
     t_starts = np.searchsorted(plan.t_index, t_edges)
-    for i in range(len(t_edges) - 1):
+    i0, i1 = time_chunks if time_chunks is not None else (0, len(t_edges) - 1)
+    for i in range(i0, i1):
         r0, r1 = t_starts[i], t_starts[i + 1]
         rows, ti, bi = plan.rows[r0:r1], plan.t_index[r0:r1] - t_edges[i], plan.b_index[r0:r1]
         for j in range(len(b_edges) - 1):
@@ -349,8 +363,14 @@ def _chunk_is_direct(rows: np.ndarray, t_index: np.ndarray, b_index: np.ndarray,
 
 
 def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], sizes: list[tuple[int, int]],
-          progress: bool, description: str) -> None:
-    """Read every chunk from the MS and write it into the store.
+          progress: bool, description: str, work: list[tuple[int, int, int]] | None = None,
+          should_stop: Callable[[], bool] | None = None) -> None:
+    """Read every chunk from the MS (or those of ``work``) and write it into the store.
+
+    ``work``: ``(partition index, first time chunk, end time chunk)`` of each range of
+    chunks to fill (every baseline chunk of those time chunks), in order; default: every
+    chunk of every partition. ``should_stop`` is asked before each chunk is read; when it
+    says so the fill ends with :class:`_Stopped` (a cluster's convert failed elsewhere).
 
     The main thread reads (casacore) while :data:`WRITE_THREADS` threads write what was read
     before. Uncompressed arrays (VISIBILITY) of a chunk whose rows fill its cells in order
@@ -370,11 +390,13 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
 
     import zarr
 
+    if work is None:
+        work = [(k, 0, -(-p.times.size // ct)) for k, (p, (ct, _)) in enumerate(zip(plans, sizes))]
     bar = None
     if progress:  # tqdm takes longer to import than a small MS takes to read
         from xstack._progress import progress_iter
 
-        total = sum(-(-p.times.size // ct) * -(-p.antenna1.size // cb) for p, (ct, cb) in zip(plans, sizes))
+        total = sum((i1 - i0) * -(-plans[k].antenna1.size // sizes[k][1]) for k, i0, i1 in work)
         bar = progress_iter(range(total), description, enabled=True)
     in_use: list[list[Future]] = [[], []]  # the writes still reading each buffer set
     pending: deque[list[Future]] = deque()  # every chunk's writes, oldest chunk first
@@ -446,7 +468,8 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
     # every chunk is written exactly once, so zarr need not compare chunks with the fill value
     with zarr.config.set({"array.write_empty_chunks": True}), ThreadPoolExecutor(WRITE_THREADS) as pool:
         try:
-            for plan, spec, (ct, cb) in zip(plans, specs, sizes):
+            for k, i0, i1 in work:
+                plan, spec, (ct, cb) = plans[k], specs[k], sizes[k]
                 group = root[plan.name]
                 arrays = {var: group[var] for var in msread.BLOCK_VARS}
                 files = {var: ChunkFiles.for_array(a) for var, a in arrays.items()}
@@ -456,7 +479,9 @@ def _fill(root: Any, plans: list[PartitionPlan], specs: list[msread.BlockSpec], 
                 buffers: list[dict[str, np.ndarray] | None] = [None, None]  # allocated when first used
                 ring = _BatchRing(3, (msread.batch_rows(spec), spec.n_channels, spec.n_pols), spec.vis_dtype)
                 slot = 1
-                for t0, t1, b0, b1, rows, ti, bi in chunk_blocks(plan, ct, cb):
+                for t0, t1, b0, b1, rows, ti, bi in chunk_blocks(plan, ct, cb, (i0, i1)):
+                    if should_stop is not None and should_stop():
+                        raise _Stopped("stopped: the conversion failed in another task")
                     whole = (b1 - b0 == cb)
                     streams = whole and any(f is not None and f.raw for f in files.values()) \
                         and _chunk_is_direct(rows, ti, bi, t1 - t0, b1 - b0)
@@ -529,6 +554,189 @@ def _write_fill(fd: int, files: ChunkFiles, row_shape: tuple[int, ...], start_ro
     for r in range(0, n_rows, step):
         n = min(step, n_rows - r)
         ChunkFiles.write_at(fd, piece[:n], (start_row + r) * row.nbytes)
+
+
+class _Stopped(Exception):
+    """A cluster task's fill ended early because the conversion failed elsewhere."""
+
+
+#: Fill tasks per worker thread of a cluster: a few, so a slow worker (or one that is
+#: restarted) delays the end by a fraction of its share, and each task's fixed costs
+#: (opening the store and the MS, its buffers' first touch) are paid a few times per thread.
+TASKS_PER_THREAD = 3
+
+#: Longest wait, seconds, for the other tasks of a failed conversion to stop (each checks
+#: before every chunk) before the store is removed.
+STOP_WAIT_S = 60.0
+
+_TABLE_USERS: dict[str, int] = {}
+_TABLE_USERS_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _tables_in_use(path: str) -> Iterator[None]:
+    """Keep the MS's cached tables (:mod:`xstack.io.msread`: one per table per process) open
+    while any fill task of this process reads them; the last one to end closes them.
+
+    A worker with several threads runs several tasks at once: they share the process's one
+    reader (under msread's lock) rather than each closing it under the others. Closing after
+    the last task (rather than keeping them for the worker's lifetime) frees the file handles
+    and the table caches, and a later convert of a rewritten MS never reads a stale table.
+    """
+    with _TABLE_USERS_LOCK:
+        _TABLE_USERS[path] = _TABLE_USERS.get(path, 0) + 1
+    try:
+        yield
+    finally:
+        with _TABLE_USERS_LOCK:
+            left = _TABLE_USERS.pop(path) - 1
+            if left:
+                _TABLE_USERS[path] = left
+            else:
+                msread.close_tables(path)
+
+
+def _restrict(plan: PartitionPlan, ct: int, i0: int, i1: int) -> PartitionPlan:
+    """``plan`` with only the rows of time chunks ``i0:i1`` (what a fill task is sent)."""
+    import dataclasses
+
+    r0, r1 = np.searchsorted(plan.t_index, [i0 * ct, min(i1 * ct, plan.times.size)])
+    return dataclasses.replace(plan, rows=plan.rows[r0:r1], t_index=plan.t_index[r0:r1],
+                               b_index=plan.b_index[r0:r1])
+
+
+def task_ranges(plans: list[PartitionPlan], sizes: list[tuple[int, int]], n_tasks: int
+                ) -> list[list[tuple[int, int, int]]]:
+    """Split the chunks into about ``n_tasks`` tasks of about equal chunk counts.
+
+    Each task is a list of ``(partition index, first time chunk, end time chunk)``: rows of
+    whole chunks (every baseline chunk of a time chunk), contiguous, in partition order; a
+    task may end one partition and start the next. Never more tasks than time chunks.
+    """
+    per_row = [-(-p.antenna1.size // cb) for p, (_, cb) in zip(plans, sizes)]
+    n_rows = [-(-p.times.size // ct) for p, (ct, _) in zip(plans, sizes)]
+    total = sum(r * w for r, w in zip(n_rows, per_row))
+    target = max(1, -(-total // max(1, min(int(n_tasks), sum(n_rows)))))
+    tasks: list[list[tuple[int, int, int]]] = []
+    current: list[tuple[int, int, int]] = []
+    filled = 0
+    for k, (rows, weight) in enumerate(zip(n_rows, per_row)):
+        i = 0
+        while i < rows:
+            take = min(rows - i, max(1, -(-(target - filled) // weight)))
+            current.append((k, i, i + take))
+            filled += take * weight
+            i += take
+            if filled >= target:
+                tasks.append(current)
+                current, filled = [], 0
+    if current:
+        tasks.append(current)
+    return tasks
+
+
+def _fill_task(loc: Any, ms_path: str, plans: list[PartitionPlan], specs: list[msread.BlockSpec],
+               sizes: list[tuple[int, int]], work: list[tuple[int, int, int]], stop_name: str,
+               out_name: str) -> int:
+    """One cluster task: open the store and the MS in this process, fill the chunks of
+    ``work`` (:func:`_fill`). Returns the number of chunks written."""
+    error: XstackError | None = None
+    try:
+        return _fill_part(loc, ms_path, plans, specs, sizes, work, stop_name, out_name)
+    except XstackError as exc:
+        error = exc
+    # the error goes back to the client pickled, with what it was raised from (zarr's,
+    # casacore's exceptions): some of those do not unpickle, and distributed then sends a
+    # plain Exception instead - which the command line would print with a traceback
+    error.__context__ = error.__cause__ = None
+    raise error
+
+
+def _fill_part(loc: Any, ms_path: str, plans: list[PartitionPlan], specs: list[msread.BlockSpec],
+               sizes: list[tuple[int, int]], work: list[tuple[int, int, int]], stop_name: str,
+               out_name: str) -> int:
+    import zarr
+
+    if not os.path.isdir(ms_path):
+        raise XstackError(f"{ms_path}: the MeasurementSet is not visible on a dask worker (workers "
+                          "must see the MS path: a shared filesystem)")
+    try:
+        if loc.local and not os.path.isdir(loc.path):
+            raise FileNotFoundError(loc.path)
+        root = zarr.open_group(loc.zarr_store(), mode="r+", zarr_format=3)
+    except (FileNotFoundError, zarr.errors.GroupNotFoundError):
+        raise XstackError(f"{out_name}: the output is not visible on a dask worker (workers must "
+                          "see the output location: a shared filesystem or an object store)") from None
+
+    stop = None
+
+    def should_stop() -> bool:
+        nonlocal stop
+        from distributed import Event
+
+        if stop is None:
+            stop = Event(stop_name)
+        return bool(stop.is_set())
+
+    with _tables_in_use(ms_path):
+        _fill(root, plans, specs, sizes, False, "", work=work, should_stop=should_stop)
+    return sum((i1 - i0) * -(-plans[k].antenna1.size // sizes[k][1]) for k, i0, i1 in work)
+
+
+def _fill_on_cluster(client: Any, loc: Any, ms_path: str, plans: list[PartitionPlan],
+                     specs: list[msread.BlockSpec], sizes: list[tuple[int, int]], progress: bool,
+                     description: str, out_name: str) -> None:
+    """Fill the store's chunks in tasks on the cluster of ``client``; return when all are written.
+
+    Each task gets only its partitions' rows (:func:`_restrict`) and opens the store and the
+    MS itself. A worker that dies mid-task has its task rerun elsewhere by the scheduler
+    (chunk files are rewritten whole, so a rerun is harmless); a task that raises fails the
+    conversion: the others are told to stop (a ``distributed.Event``, checked before every
+    chunk) and waited for, so nothing writes into the store after it is removed.
+    """
+    from distributed import Event, wait
+
+    threads = max(1, sum(client.nthreads().values()))
+    tag = uuid.uuid4().hex[:12]
+    stop_name = f"xstack-convert-stop-{tag}"
+    futures = []
+    for i, ranges in enumerate(task_ranges(plans, sizes, TASKS_PER_THREAD * threads)):
+        # one restricted plan per range: a task is sent its rows only, never the whole index
+        sub = [_restrict(plans[k], sizes[k][0], i0, i1) for k, i0, i1 in ranges]
+        sub_work = [(j, i0, i1) for j, (_k, i0, i1) in enumerate(ranges)]
+        futures.append(client.submit(
+            _fill_task, loc, ms_path, sub, [specs[k] for k, _, _ in ranges],
+            [sizes[k] for k, _, _ in ranges], sub_work, stop_name, out_name,
+            key=f"xstack-convert-fill-{i}-{tag}", pure=False))
+    try:
+        _follow(client, futures, progress, description)
+        client.gather(futures)
+    except BaseException:
+        event = Event(stop_name, client=client)
+        event.set()
+        with contextlib.suppress(Exception):
+            wait(futures, timeout=STOP_WAIT_S)
+        client.cancel(futures)
+        with contextlib.suppress(Exception):
+            event.clear()
+        raise
+    finally:
+        del futures
+
+
+def _follow(client: Any, futures: list[Any], progress: bool, description: str) -> None:
+    """A progress bar advanced by the scheduler per finished task (returns when all ended)."""
+    from xstack import _progress
+
+    if not (progress and _progress._allowed):
+        return
+    bar = _progress.tqdm(total=len(futures), desc=description, file=sys.stderr, unit="task",
+                         leave=False, dynamic_ncols=True)
+    try:
+        _progress._distributed_bar_class()(futures, bar, scheduler=client.scheduler.address,
+                                           interval="100ms")
+    finally:
+        bar.close()
 
 
 def release_free_memory() -> None:
@@ -656,9 +864,14 @@ def convert_ms(
             partitions[plan.name] = ds
         root_attrs = {"source_ms": path, "data_column": column, "xstack_version": __version__,
                       "created_by": f"xstack {__version__} convert_ms"}
-        with region_store(partitions, out, overwrite=overwrite, attrs=root_attrs,
-                          encoding=_encoding(), storage_options=storage_options) as root:
-            _fill(root, plans, specs, sizes, progress, f"convert {ms_path.name}")
+        client = active_client()
+        with region_store(partitions, out, overwrite=overwrite, attrs=root_attrs, encoding=_encoding(),
+                          storage_options=storage_options, with_location=True) as (root, loc):
+            if client is None:
+                _fill(root, plans, specs, sizes, progress, f"convert {ms_path.name}")
+            else:  # the client plans and creates the store; the workers read and write the chunks
+                _fill_on_cluster(client, loc, path, plans, specs, sizes, progress,
+                                 f"convert {ms_path.name}", str(out))
         return out
     finally:
         msread.close_tables(path)

@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     from xstack._atomic import atomic_output, check_output
     from xstack._inputs import Positions
     from xstack.cli import emit_json
-    from xstack.uvstack.stack import plot_uv_profile, stack_uv, uv_profile
+    from xstack.uvstack.stack import plot_uv_profile, stack_uv
 
     if len(args.inputs) < 3:
         raise XstackError("need DATA... CATALOG OUT.zarr (at least three arguments)")
@@ -141,10 +141,9 @@ def run(args: argparse.Namespace) -> int:
                   primary_beam=args.primary_beam, pb_cutoff=args.pb_cutoff, uvmin=args.uvmin,
                   uvmax=args.uvmax, noise_image=args.noise_image, polarizations=pols,
                   engine=args.engine, out=out, smearing=args.smearing,
-                  autocorrelations=args.autocorrelations,
+                  autocorrelations=args.autocorrelations, profile_bins=args.profile_bins,
                   overwrite=args.overwrite, progress=progress)
-    table = uv_profile(out, bins=args.profile_bins, uvmin=args.uvmin, uvmax=args.uvmax,
-                       polarizations=pols)
+    table = res.profile  # made in the stack's pass: the store is not read again
     first = first_error(res, args.errors)
     table.meta.update({"flux_jy": res.flux_jy, "flux_err_jy": res.flux_err_jy,
                        "flux_err_empirical_jy": res.flux_err_empirical_jy,

@@ -22,8 +22,7 @@ from astropy.table import Table
 from xstack._select import parallel_hand_mask
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
 from xstack.errors import XstackError
-
-_NSUM = 8  # sum w, w Re, w Im, w^2, w^2 Re, w^2 Re^2, w^2 Im, w^2 Im^2 ; + count
+from xstack.uvstack import kernels
 
 
 def _partitions(stacked: Any) -> list[xr.Dataset]:
@@ -43,22 +42,7 @@ def _block_range(uvw, frequency):
 
 
 def _block_hist(vis, weight, flag, uvw, frequency, edges, pol_mask):
-    nt, nb, nc, npol = vis.shape
-    nbin = edges.size - 1
-    q = np.hypot(uvw[..., 0], uvw[..., 1])[..., None] * (np.asarray(frequency) / SPEED_OF_LIGHT)
-    idx = np.searchsorted(edges, q, side="right") - 1  # (t, b, c)
-    idx = np.where((q >= edges[0]) & (q <= edges[-1]), np.clip(idx, 0, nbin - 1), -1)
-    good = (~flag) & pol_mask[None, None, None, :] & (weight > 0) & np.isfinite(vis)
-    good &= (idx >= 0)[..., None]
-    w = np.where(good, weight.astype(np.float64), 0.0)
-    re = np.where(good, vis.real, 0.0).astype(np.float64)
-    im = np.where(good, vis.imag, 0.0).astype(np.float64)
-    b = np.broadcast_to(np.where(idx >= 0, idx, 0)[..., None], vis.shape).ravel()
-    w2 = w * w
-    cols = [w, w * re, w * im, w2, w2 * re, w2 * re * re, w2 * im, w2 * im * im,
-            good.astype(np.float64)]
-    out = np.stack([np.bincount(b, weights=c.ravel(), minlength=nbin) for c in cols], axis=1)
-    return out[None, None]
+    return kernels.profile_sums(vis, weight, flag, uvw, frequency, edges, pol_mask)[None, None]
 
 
 def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any = None,
@@ -86,6 +70,18 @@ def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any
         ``im_jy``, ``im_err_jy``, ``sum_weight``, ``count``. Empty bins hold NaN.
     """
     parts = _partitions(stacked)
+    edges, fmean = profile_edges(parts, bins, uvmin, uvmax)
+    graphs = [profile_graph(ds, edges, polarizations) for ds in parts]
+    return profile_table(np.sum(dask.compute(*graphs), axis=0), edges, fmean)
+
+
+def profile_edges(parts: list[xr.Dataset], bins: int | Any = 20, uvmin: Any = None,
+                  uvmax: Any = None) -> tuple[np.ndarray, float]:
+    """Bin edges (wavelengths) of a uv-profile of ``parts`` and their mean frequency (Hz).
+
+    Parameters as :func:`uv_profile`. With a number of bins and no ``uvmin``/``uvmax`` the
+    uv range is measured from the partitions' UVW (a pass over UVW only).
+    """
     if not parts:
         raise XstackError("no stacked partitions")
     fmean = float(np.mean(np.concatenate([np.asarray(ds["frequency"].values) for ds in parts])))
@@ -118,39 +114,48 @@ def uv_profile(stacked: Any, bins: int | Any = 20, uvmin: Any = None, uvmax: Any
             hi = qmax if hi is None else hi
         if not hi > lo:
             raise XstackError("empty uv range for the profile")
-        edges = np.linspace(lo, hi, nbin + 1)
+        return np.linspace(lo, hi, nbin + 1), fmean
+    edges = np.asarray(bins, dtype=np.float64) * 1e3
+    if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+        raise XstackError("bin edges must be increasing")
+    return edges, fmean
+
+
+def profile_graph(ds: xr.Dataset, edges: np.ndarray, polarizations: Any = "parallel") -> da.Array:
+    """The lazy uv-profile sums (nbin, :data:`~xstack.uvstack.kernels.NPROFILE`) of one
+    stacked partition: one task per chunk (:func:`~xstack.uvstack.kernels.profile_sums`),
+    summed. Computed together with the graph that makes ``ds``'s arrays, it adds no pass."""
+    pols = [str(p).upper() for p in ds["polarization"].values]
+    if polarizations == "parallel":
+        pmask = parallel_hand_mask(pols)
+    elif polarizations == "all":
+        pmask = np.ones(len(pols), bool)
     else:
-        edges = np.asarray(bins, dtype=np.float64) * 1e3
-        if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
-            raise XstackError("bin edges must be increasing")
-        nbin = edges.size - 1
-    graphs = []
-    for ds in parts:
-        pols = [str(p).upper() for p in ds["polarization"].values]
-        if polarizations == "parallel":
-            pmask = parallel_hand_mask(pols)
-        elif polarizations == "all":
-            pmask = np.ones(len(pols), bool)
-        else:
-            pmask = np.array([p in {str(x).upper() for x in polarizations} for p in pols])
-        arrs = []
-        for var in ("VISIBILITY", "WEIGHT", "FLAG"):
-            a = ds[var].data
-            arrs.append(a if isinstance(a, da.Array) else da.from_array(np.asarray(a)))
-        vis, wt, fl = arrs
-        vis = vis.rechunk({2: -1, 3: -1})
-        wt = wt.rechunk(vis.chunks)
-        fl = fl.rechunk(vis.chunks)
-        uvw = ds["UVW"].data
-        uvw = (uvw if isinstance(uvw, da.Array) else da.from_array(np.asarray(uvw)))
-        uvw = uvw.rechunk((vis.chunks[0], vis.chunks[1], -1))
-        h = da.blockwise(_block_hist, "tbsk", vis, "tbcp", wt, "tbcp", fl, "tbcp", uvw, "tbx",
-                         dtype=np.float64, concatenate=True, new_axes={"s": nbin, "k": _NSUM + 1},
-                         adjust_chunks={"t": 1, "b": 1}, frequency=np.asarray(ds["frequency"].values),
-                         edges=edges, pol_mask=pmask)
-        graphs.append(h.sum(axis=(0, 1)))
-    total = np.sum(dask.compute(*graphs), axis=0)
-    sw, swr, swi, sw2, sw2r, sw2rr, sw2i, sw2ii, count = total.T
+        pmask = np.array([p in {str(x).upper() for x in polarizations} for p in pols])
+    arrs = []
+    for var in ("VISIBILITY", "WEIGHT", "FLAG"):
+        a = ds[var].data
+        arrs.append(a if isinstance(a, da.Array) else da.from_array(np.asarray(a)))
+    vis, wt, fl = arrs
+    vis = vis.rechunk({2: -1, 3: -1})
+    wt = wt.rechunk(vis.chunks)
+    fl = fl.rechunk(vis.chunks)
+    uvw = ds["UVW"].data
+    uvw = (uvw if isinstance(uvw, da.Array) else da.from_array(np.asarray(uvw)))
+    uvw = uvw.rechunk((vis.chunks[0], vis.chunks[1], -1))
+    nbin = edges.size - 1
+    h = da.blockwise(_block_hist, "tbsk", vis, "tbcp", wt, "tbcp", fl, "tbcp", uvw, "tbx",
+                     dtype=np.float64, concatenate=True,
+                     new_axes={"s": nbin, "k": kernels.NPROFILE},
+                     adjust_chunks={"t": 1, "b": 1}, frequency=np.asarray(ds["frequency"].values),
+                     edges=edges, pol_mask=pmask)
+    return h.sum(axis=(0, 1))
+
+
+def profile_table(total: np.ndarray, edges: np.ndarray, fmean: float) -> Table:
+    """The :func:`uv_profile` table from the summed sums of :func:`profile_graph`."""
+    lam = SPEED_OF_LIGHT / fmean
+    sw, swr, swi, sw2, sw2r, sw2rr, sw2i, sw2ii, count = np.asarray(total).T
     with np.errstate(invalid="ignore", divide="ignore"):
         re = swr / sw
         im = swi / sw

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -106,6 +107,10 @@ class StackResult(Result):
         Catalog rows covered by no pointing (not used).
     options
         The options used (JSON-ready).
+    profile
+        With ``profile_bins``: the uv-profile of the stacked visibilities
+        (:func:`~xstack.uvstack.profile.uv_profile`'s table), made in the stack's own pass over
+        the data; else None.
     """
 
     stacked: dict[str, xr.Dataset]
@@ -121,6 +126,7 @@ class StackResult(Result):
     flux_err_empirical_jy: float = float("nan")
     weight_scale: float = float("nan")
     noise_estimate: dict[str, Any] = field(default_factory=dict)
+    profile: Table | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary: flux_jy, flux_err_jy, flux_err_empirical_jy, weight_scale,
@@ -198,6 +204,7 @@ class UvstackOptions:
     antenna_tol_rad: float = ANTENNA_TOL_RAD
     autocorrelations: bool = False
     smearing: str = "auto"
+    profile_bins: Any = field(default=None, compare=False)
     uv_lo: UVLimit | None = field(init=False, default=None)
     uv_hi: UVLimit | None = field(init=False, default=None)
 
@@ -215,6 +222,7 @@ class UvstackOptions:
         self._set_uv_limits()
         self._check_sigma()
         self._set_polarizations()
+        self._check_profile_bins()
         try:
             tol = float(self.antenna_tol_rad)
         except (TypeError, ValueError):
@@ -222,6 +230,20 @@ class UvstackOptions:
         if not (np.isfinite(tol) and tol >= 0):
             raise _option_error("antenna_tol_rad", "antenna_tol_rad must be a finite angle >= 0 "
                                 f"(radians), got {self.antenna_tol_rad!r}")
+
+    def _check_profile_bins(self) -> None:
+        bins = self.profile_bins
+        if bins is None:
+            return
+        if np.ndim(bins) == 0:
+            if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 1:
+                raise _option_error("profile_bins", "profile_bins must be a number of bins >= 1 "
+                                    f"or increasing bin edges in kilo-wavelengths, got {bins!r}")
+            return
+        edges = np.asarray(bins, dtype=np.float64)
+        if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+            raise _option_error("profile_bins", "profile_bins edges must be increasing "
+                                "(kilo-wavelengths)")
 
     def _check_primary_beam(self) -> None:
         beam = self.primary_beam
@@ -274,8 +296,8 @@ class UvstackOptions:
     def to_dict(self) -> dict[str, Any]:
         """The options recorded in :attr:`StackResult.options` (JSON-ready, in this order).
 
-        ``sigma``, ``noise_image``, ``out``, ``overwrite``, ``progress`` and
-        ``antenna_tol_rad`` are not recorded (the result records what sigma_k were used);
+        ``sigma``, ``noise_image``, ``out``, ``overwrite``, ``progress``,
+        ``antenna_tol_rad`` and ``profile_bins`` are not recorded (the result records what sigma_k were used);
         the stacking adds ``smearing_corrected``, ``sigma``, ``stack_center_deg``,
         ``local_noise`` and ``engine_rows``, and replaces ``engine`` by the engine that ran.
         """
@@ -985,6 +1007,23 @@ class _Measured:
     noise_estimate: dict[str, Any]
     flux_imag_jy: float
     n_visibilities: int
+    profile: Table | None = None
+
+
+def _profile_graphs(stacked: dict[str, xr.Dataset], options: UvstackOptions
+                    ) -> tuple[list[Any], Callable[[tuple[Any, ...]], Table | None]]:
+    """The lazy uv-profile sums of the stacked partitions (none without ``profile_bins``) and
+    the function that makes the table from their computed values."""
+    if options.profile_bins is None:
+        return [], lambda results: None
+    from xstack.uvstack.profile import profile_edges, profile_graph, profile_table
+
+    pols = options.polarizations if isinstance(options.polarizations, str) \
+        else list(options.polarizations)
+    parts = list(stacked.values())
+    edges, fmean = profile_edges(parts, options.profile_bins, options.uvmin, options.uvmax)
+    graphs = [profile_graph(ds, edges, pols) for ds in parts]
+    return graphs, lambda results: profile_table(np.sum(results, axis=0), edges, fmean)
 
 
 def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
@@ -1000,10 +1039,14 @@ def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
         stacked[p.name] = ds_out
         sums_graph.append(sums)
     done: list[_Measured] = []
+    # the uv-profile's sums read the stacked chunks of the same pass (no second pass)
+    profile_graphs, make_profile = _profile_graphs(stacked, options)
+    n_sums = len(sums_graph)
 
     def measure(results: tuple[Any, ...]) -> dict[str, Any]:
-        done.append(_measure(results, plan, options, stacked))
+        done.append(_measure(results[:n_sums], plan, options, stacked))
         m = done[-1]
+        m.profile = make_profile(results[n_sums:])
         emp = m.flux_err_empirical_jy
         return {"uvstack": {"flux_jy": m.flux_jy, "flux_err_jy": m.flux_err_jy,
                             "flux_err_empirical_jy": emp if np.isfinite(emp) else None,
@@ -1013,7 +1056,7 @@ def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
     try:
         if options.out is None:
             with dask_progress("uvstack: flux", enabled=options.progress):
-                measure(dask.compute(*sums_graph))
+                measure(dask.compute(*sums_graph, *profile_graphs))
         else:
             from xstack.schema import write_store
 
@@ -1023,7 +1066,7 @@ def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
             with dask.config.set({"optimization.fuse.active": False}):
                 write_store(stacked, options.out, kind="stacked", overwrite=options.overwrite,
                             progress=options.progress, description="uvstack",
-                            compute_with=sums_graph, final_attrs=measure)
+                            compute_with=[*sums_graph, *profile_graphs], final_attrs=measure)
     except MemoryError as exc:
         if options.engine != "nufft":
             raise
@@ -1102,7 +1145,7 @@ def _assemble(plan: _StackPlan, measured: _Measured, options: UvstackOptions) ->
                        partition_sums={p.name: s[:_NSUMS].tolist()
                                        for p, s in zip(plan.active, measured.sums)},
                        flux_err_empirical_jy=err_e, weight_scale=measured.weight_scale,
-                       noise_estimate=measured.noise_estimate)
+                       noise_estimate=measured.noise_estimate, profile=measured.profile)
 
 
 # --- public API ---------------------------------------------------------------------------
@@ -1113,7 +1156,7 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
             out: str | os.PathLike | None = None, overwrite: bool = False,
             progress: bool = False, antenna_tol_rad: float = ANTENNA_TOL_RAD,
             autocorrelations: bool = False, smearing: str = "auto",
-            compute: bool = True) -> StackResult | LazyResult:
+            profile_bins: Any = None, compute: bool = True) -> StackResult | LazyResult:
     """Stack visibilities at catalog positions (paper eq. 4) and estimate the stacked flux.
 
     Parameters
@@ -1188,6 +1231,12 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
         L_k(nu) of each position (weighted mean smearing factor over its pointing's
         visibilities, from a subsample of rows) divides its coefficient like A_k;
         ``positions["smearing_loss"]`` holds 1 - L_k at the mean frequency.
+    profile_bins
+        Also make the uv-profile of the stacked visibilities (``result.profile``) in the
+        same pass over the data: a number of equal bins over the data's uv range (measured
+        from UVW first, a pass over UVW only) or the stack's ``uvmin``/``uvmax``, or bin edges
+        in kilo-wavelengths; equal to :func:`~xstack.uvstack.profile.uv_profile` of the
+        written store with the same bins, range and polarizations. None: no profile.
     compute
         ``False``: plan the stack (catalog, weights, beams; no visibility is read) and return
         a :class:`xstack._lazy.LazyResult` whose flux pass runs later, together with other
@@ -1213,7 +1262,8 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
         weighting=weighting, primary_beam=primary_beam, pb_cutoff=pb_cutoff, uvmin=uvmin,
         uvmax=uvmax, sigma=sigma, noise_image=noise_image, polarizations=polarizations,
         engine=engine, out=out, overwrite=overwrite, progress=progress,
-        antenna_tol_rad=antenna_tol_rad, autocorrelations=autocorrelations, smearing=smearing)
+        antenna_tol_rad=antenna_tol_rad, autocorrelations=autocorrelations, smearing=smearing,
+        profile_bins=profile_bins)
     if not compute and out is not None:
         raise OptionError("a lazy stack (compute=False) writes no store: stack with "
                           "compute=True to write out", option="out")
@@ -1235,7 +1285,12 @@ def _lazy(plan: _StackPlan, options: UvstackOptions) -> LazyResult:
         stacked[p.name] = ds_out
         sums_graph.append(sums)
 
-    def finish(results: list[Any]) -> StackResult:
-        return _assemble(plan, _measure(tuple(results), plan, options, stacked), options)
+    profile_graphs, make_profile = _profile_graphs(stacked, options)
+    n_sums = len(sums_graph)
 
-    return LazyResult(sums_graph, finish, "stack_uv")
+    def finish(results: list[Any]) -> StackResult:
+        measured = _measure(tuple(results[:n_sums]), plan, options, stacked)
+        measured.profile = make_profile(tuple(results[n_sums:]))
+        return _assemble(plan, measured, options)
+
+    return LazyResult([*sums_graph, *profile_graphs], finish, "stack_uv")

@@ -16,6 +16,8 @@ Conventions (``docs/imaging.md``):
 
 Visibilities are read chunk by chunk (the store's time x baseline chunks) and the dirty image
 is accumulated: ducc0's ``vis2dirty`` is linear, so nothing larger than one chunk is loaded.
+With a ``distributed.Client`` active, each batch of chunks is read and gridded by a task on
+the cluster and the partial images are summed there by a tree of tasks.
 """
 
 from __future__ import annotations
@@ -517,6 +519,263 @@ def check_uv_coverage(moments: np.ndarray, parts: Sequence[tuple[str, xr.Dataset
     return 2, None
 
 
+# --------------------------------------------------------------------------- per-batch work
+#: Visibilities (rows x channels) gathered per ducc0 call: every call pays for the FFTs of
+#: the whole oversampled grid, so fewer, larger calls are faster; on a cluster, one task's work.
+BATCH_VISIBILITIES = 1 << 24
+#: Key prefix of the gridding tasks on a cluster (one per batch of store chunks).
+GRID_TASK = "xstack-image-grid"
+#: Key prefix of the tasks that sum the gridding tasks' partial images (a tree).
+SUM_TASK = "xstack-image-sum"
+#: Partial results summed per tree node (fan-in of the reduction).
+_SUM_FAN_IN = 4
+#: Arrays each pass reads per store chunk.
+_PASS_COLUMNS = {"density": ("UVW", "WEIGHT", "FLAG"), "model": ("UVW", "WEIGHT", "FLAG"),
+                 "dirty": ("UVW", "WEIGHT", "FLAG", "VISIBILITY")}
+
+
+@dataclass(frozen=True)
+class _GridSpec:
+    """What a gridding task needs of the :class:`Imager` (small, picklable)."""
+
+    ny: int
+    nx: int
+    cell: float
+    cell_arcsec: float
+    epsilon: float
+    wterm: bool
+    nthreads: int
+    weighting: str
+    f2: float
+    shift: bool
+    data_center: tuple[float, ...]
+    phase_center: tuple[float, ...]
+
+    def kw(self, nthreads: int) -> dict[str, Any]:
+        return {"epsilon": self.epsilon, "wterm": self.wterm, "nthreads": nthreads}
+
+
+class _Read:
+    """One array's (time, baseline) slice, read where :meth:`read` runs (in the task).
+
+    For a dask array: the graph of just the blocks that cover the slice (their dependency
+    closure, a few tasks) and the slice within them; for numpy data: the slice itself.
+    """
+
+    __slots__ = ("array", "graph", "keys", "index")
+
+    def __init__(self, array: np.ndarray | None = None, graph: dict | None = None,
+                 keys: list | None = None, index: tuple[slice, ...] = ()) -> None:
+        self.array, self.graph, self.keys, self.index = array, graph, keys, index
+
+    def read(self) -> np.ndarray:
+        if self.graph is None:
+            return np.asarray(self.array)
+        from dask.array.core import concatenate3
+        from dask.core import flatten
+        from dask.local import get_sync
+
+        flat = list(flatten(self.keys))
+        values = dict(zip(flat, get_sync(self.graph, flat), strict=True))
+
+        def nest(k: Any) -> Any:
+            return [nest(x) for x in k] if isinstance(k, list) else values[k]
+
+        return np.asarray(concatenate3(nest(self.keys)))[self.index]
+
+
+class _Batch:
+    """The store chunks one gridding task reads itself: ``[(reads, pols, freq), ...]``.
+
+    A plain class on purpose: ``dask.delayed`` looks into lists, dicts and dataclasses and
+    would turn dask collections into task inputs (each chunk read on some worker, then moved
+    to the gridding task's worker); here the task reads its chunks where it runs.
+    """
+
+    __slots__ = ("chunks",)
+
+    def __init__(self, chunks: list[tuple[list[_Read], list[int], np.ndarray]]) -> None:
+        self.chunks = chunks
+
+
+class _Columns:
+    """Makes :class:`_Read` s of a partition's arrays; each array's graph is materialised once
+    (culling it per slice costs O(all chunks) per slice: minutes for 10^4 chunks)."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[tuple[int, str], tuple[dict, str, list[np.ndarray]]] = {}
+
+    def read(self, ds: xr.Dataset, column: str, ts: slice, bs: slice) -> _Read:
+        import dask.array as da
+        from dask.core import get_dependencies
+
+        a = ds[column].data
+        if not isinstance(a, da.Array) or ts.stop <= ts.start or bs.stop <= bs.start:
+            return _Read(array=np.asarray(a[ts, bs]))
+        ident = (id(ds), column)
+        if ident not in self._arrays:
+            bounds = [np.concatenate([[0], np.cumsum(c)]).astype(int) for c in a.chunks]
+            self._arrays[ident] = (dict(a.__dask_graph__()), a.name, bounds)
+        dsk, name, bounds = self._arrays[ident]
+        tb, bb = bounds[0], bounds[1]
+        i0, i1 = np.searchsorted(tb, ts.start, "right") - 1, np.searchsorted(tb, ts.stop, "left")
+        j0, j1 = np.searchsorted(bb, bs.start, "right") - 1, np.searchsorted(bb, bs.stop, "left")
+        ranges = [range(i0, i1), range(j0, j1)] + [range(len(b) - 1) for b in bounds[2:]]
+
+        def keys(prefix: tuple[int, ...], dims: list[range]) -> Any:
+            if not dims:
+                return (name, *prefix)
+            return [keys((*prefix, i), dims[1:]) for i in dims[0]]
+
+        nested = keys((), ranges)
+        graph: dict = {}
+        todo = [(name, i, j, *rest) for i in ranges[0] for j in ranges[1]
+                for rest in np.ndindex(*(len(r) for r in ranges[2:]))]
+        while todo:
+            k = todo.pop()
+            if k in graph:
+                continue
+            graph[k] = dsk[k]
+            todo.extend(get_dependencies(dsk, k))
+        index = (slice(ts.start - tb[i0], ts.stop - tb[i0]), slice(bs.start - bb[j0], bs.stop - bb[j0]))
+        return _Read(graph=graph, keys=nested, index=index)
+
+
+def _chunk_rows(spec: _GridSpec, arrays: Sequence[np.ndarray], pols: Sequence[int],
+                freq: np.ndarray, density: np.ndarray | None, need_vis: bool
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray] | None:
+    """One chunk's gridder rows: (uvw, imaging weight, vis, data weight), None if empty."""
+    uvw, w, v = rows_of_block(arrays[0], arrays[1], arrays[2], pols,
+                              arrays[3] if need_vis else None)
+    if uvw.shape[0] == 0:
+        return None
+    if spec.shift:
+        uvw, v = rephase(uvw, v, freq, spec.data_center, spec.phase_center)
+    raw = w
+    if density is not None:
+        dens = kernels.lookup_weight_grid(density, uvw, freq, spec.cell)
+        w = kernels.imaging_weights(w, dens, spec.weighting, spec.f2)
+    return uvw, w, v, raw
+
+
+def _density_chunk(spec: _GridSpec, grid: np.ndarray, arrays: Sequence[np.ndarray],
+                   pols: Sequence[int], freq: np.ndarray) -> None:
+    """Add one chunk's natural weights to the uv density ``grid`` (in place)."""
+    u, w, _ = rows_of_block(arrays[0], arrays[1], arrays[2], pols)
+    if spec.shift:
+        u, _ = rephase(u, None, freq, spec.data_center, spec.phase_center)
+    kernels.accumulate_weight_grid(grid, u, freq, w, spec.cell)
+
+
+def _dirty_sums(spec: _GridSpec, uvw: np.ndarray, freq: np.ndarray, w: np.ndarray,
+                v: np.ndarray, raw: np.ndarray, nthreads: int) -> dict[str, Any]:
+    """One batch's unnormalised dirty image and PSF and its weight sums."""
+    kw = spec.kw(nthreads)
+    used = freq[np.any(w > 0, axis=0)]
+    return {
+        "dirty": grid_visibilities(uvw, freq, v, w, spec.ny, spec.nx, spec.cell, **kw),
+        "psf": grid_visibilities(uvw, freq, np.ones_like(v), w, spec.ny, spec.nx, spec.cell, **kw),
+        "sum_w": float(w.sum()),
+        # data weights are 1/sigma^2: the image noise is sum w_img^2 sigma^2 / (sum w_img)^2
+        "var_num": float(np.sum(np.where(raw > 0, w * w / np.where(raw > 0, raw, 1.0), 0.0))),
+        "sum_wf": float((w.sum(axis=0) * freq).sum()),
+        "nvis": int(np.count_nonzero(w)),
+        "fmin": float(used.min()) if used.size else np.inf,
+        "fmax": float(used.max()) if used.size else -np.inf,
+        "moments": uv_moments(uvw, freq, w),
+    }
+
+
+def _model_sums(spec: _GridSpec, uvw: np.ndarray, freq: np.ndarray, w: np.ndarray,
+                model: np.ndarray, nthreads: int) -> dict[str, Any]:
+    """One batch's unnormalised dirty image of the model's predicted visibilities."""
+    kw = spec.kw(nthreads)
+    vis = predict(model, spec.cell_arcsec, uvw, freq, **kw)
+    return {"image": grid_visibilities(uvw, freq, vis, w, spec.ny, spec.nx, spec.cell, **kw)}
+
+
+def _empty_sums(spec: _GridSpec, kind: str) -> dict[str, Any]:
+    zeros = np.zeros((spec.ny, spec.nx))
+    if kind == "density":
+        return {"grid": zeros}
+    if kind == "model":
+        return {"image": zeros}
+    return {"dirty": zeros, "psf": zeros.copy(), "sum_w": 0.0, "var_num": 0.0, "sum_wf": 0.0,
+            "nvis": 0, "fmin": np.inf, "fmax": -np.inf, "moments": np.zeros(3)}
+
+
+def _add_sums(acc: dict[str, Any] | None, part: dict[str, Any]) -> dict[str, Any]:
+    """``acc + part`` key by key (min/max for the frequency range), updating ``acc``."""
+    if acc is None:
+        return part
+    for k, v in part.items():
+        if k == "fmin":
+            acc[k] = min(acc[k], v)
+        elif k == "fmax":
+            acc[k] = max(acc[k], v)
+        elif isinstance(v, np.ndarray):
+            acc[k] += v
+        else:
+            acc[k] = acc[k] + v
+    return acc
+
+
+def _sum_task(*parts: dict[str, Any]) -> dict[str, Any]:
+    """A node of the cluster's reduction tree: the sum of its inputs (left untouched: a
+    rerun task must find them as they were)."""
+    acc = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in parts[0].items()}
+    for p in parts[1:]:
+        acc = _add_sums(acc, p)
+    return acc
+
+
+def _task_threads(requested: int) -> int:
+    """Gridder threads in a task: the worker's threads (at most ``requested`` if > 0)."""
+    import sys
+
+    dist = sys.modules.get("distributed")
+    if dist is None:
+        return requested
+    try:
+        have = int(dist.get_worker().state.nthreads)
+    except ValueError:  # not on a worker
+        return requested
+    return have if requested <= 0 else max(1, min(requested, have))
+
+
+def _grid_task(spec: _GridSpec, kind: str, batch: _Batch, density: np.ndarray | None,
+               model: np.ndarray | None) -> dict[str, Any]:
+    """One cluster task: read a batch of store chunks here, grid them, return partial sums.
+
+    ``kind``: ``density`` (uniform/Briggs uv density grid), ``dirty`` (dirty image, PSF and
+    weight sums) or ``model`` (dirty image of ``model``'s predicted visibilities).
+    """
+    nthreads = _task_threads(spec.nthreads)
+    grid = np.zeros((spec.ny, spec.nx)) if kind == "density" else None
+    rows = []
+    for reads, pols, freq in batch.chunks:
+        # chunk by chunk, so a task holds one chunk's raw arrays at a time (as the local path)
+        got = [r.read() for r in reads]
+        if grid is not None:
+            _density_chunk(spec, grid, got, pols, freq)
+            continue
+        r = _chunk_rows(spec, got, pols, freq, density, need_vis=kind == "dirty")
+        if r is not None:
+            rows.append(r)
+    if grid is not None:
+        return {"grid": grid}
+    if not rows:
+        return _empty_sums(spec, kind)
+    freq = batch.chunks[0][2]
+    uvw = np.concatenate([r[0] for r in rows])
+    w = np.concatenate([r[1] for r in rows])
+    if kind == "model":
+        return _model_sums(spec, uvw, freq, w, model, nthreads)
+    v = np.concatenate([r[2] for r in rows])
+    raw = np.concatenate([r[3] for r in rows])
+    return _dirty_sums(spec, uvw, freq, w, v, raw, nthreads)
+
+
 # --------------------------------------------------------------------------- the imager
 class Imager:
     """Streams a selection of partitions through ducc0 with fixed imaging weights.
@@ -553,11 +812,19 @@ class Imager:
         self.density: np.ndarray | None = None
         self.f2 = 0.0
         #: visibilities (rows x channels) gathered per ducc0 call
-        self.batch_visibilities = 1 << 24
+        self.batch_visibilities = BATCH_VISIBILITIES
+        #: cluster passes' batch plans by the columns they read (see :meth:`_plan`)
+        self._plans: dict[tuple[str, ...], list[_Batch]] = {}
         if weighting != "natural":
             self._density_pass()
 
     # -- iteration
+    def _spec(self) -> _GridSpec:
+        return _GridSpec(ny=self.ny, nx=self.nx, cell=self.cell, cell_arcsec=self.cell_arcsec,
+                         epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads,
+                         weighting=self.weighting, f2=self.f2, shift=self._shift,
+                         data_center=self.data_center, phase_center=self.phase_center)
+
     def _iter(self, need_vis: bool, description: str) -> Iterator[tuple[np.ndarray, ...]]:
         """Yield (uvw, freq, imaging weight, vis, data weight) batches of about
         ``batch_visibilities`` visibilities.
@@ -567,6 +834,7 @@ class Imager:
         """
         from xstack._progress import progress_iter
 
+        spec = self._spec()
         jobs = [(name, ds, ts, bs) for name, ds in self.parts for ts, bs in _blocks(ds)]
         buf: list[tuple[np.ndarray, ...]] = []
         nbuf = 0
@@ -581,86 +849,162 @@ class Imager:
 
         for name, ds, ts, bs in progress_iter(jobs, description, self.progress, total=len(jobs)):
             names = ["UVW", "WEIGHT", "FLAG"] + (["VISIBILITY"] if need_vis else [])
-            arrays = _read(ds, ts, bs, names)
-            uvw, w, v = rows_of_block(arrays[0], arrays[1], arrays[2], self.pols[name],
-                                      arrays[3] if need_vis else None)
-            if uvw.shape[0] == 0:
-                continue
             freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-            if self._shift:
-                uvw, v = rephase(uvw, v, freq, self.data_center, self.phase_center)
-            raw = w
-            if self.density is not None:
-                dens = kernels.lookup_weight_grid(self.density, uvw, freq, self.cell)
-                w = kernels.imaging_weights(w, dens, self.weighting, self.f2)
+            rows = _chunk_rows(spec, _read(ds, ts, bs, names), self.pols[name], freq,
+                               self.density, need_vis)
+            if rows is None:
+                continue
             if buf and (cur.shape != freq.shape or not np.array_equal(cur, freq)):
                 yield flush()
                 buf, nbuf = [], 0
             cur = freq
-            buf.append((uvw, w, v, raw))
-            nbuf += w.size
+            buf.append(rows)
+            nbuf += rows[1].size
             if nbuf >= self.batch_visibilities:
                 yield flush()
                 buf, nbuf = [], 0
         if buf:
             yield flush()
 
-    def _density_pass(self) -> None:
-        grid = np.zeros((self.ny, self.nx))
+    def _plan(self, kind: str) -> list[_Batch]:
+        """The cluster tasks' batches of store chunks, from the chunk layout alone.
+
+        A batch holds about ``batch_visibilities`` (rows x channels x parallel hands before
+        flagging: an upper bound of what the local path counts) of one frequency axis, as
+        the local path gathers them per ducc0 call. A task carries only the graph of its own
+        chunks. Made once per set of columns (the density pass and CLEAN's major cycles share
+        one).
+        """
+        names = _PASS_COLUMNS[kind]
+        if names in self._plans:
+            return self._plans[names]
+        plan: list[list[tuple[str, xr.Dataset, slice, slice]]] = []
+        cur: list[tuple[str, xr.Dataset, slice, slice]] = []
+        n = 0
+        cur_freq: np.ndarray | None = None
         for name, ds in self.parts:
             freq = np.asarray(ds["frequency"].values, dtype=np.float64)
+            per_row = freq.size * len(self.pols[name])
             for ts, bs in _blocks(ds):
-                uvw, wt, fl = _read(ds, ts, bs, ["UVW", "WEIGHT", "FLAG"])
-                u, w, _ = rows_of_block(uvw, wt, fl, self.pols[name])
-                if self._shift:
-                    u, _ = rephase(u, None, freq, self.data_center, self.phase_center)
-                kernels.accumulate_weight_grid(grid, u, freq, w, self.cell)
+                if cur and (cur_freq.shape != freq.shape or not np.array_equal(cur_freq, freq)):
+                    plan.append(cur)
+                    cur, n = [], 0
+                cur.append((name, ds, ts, bs))
+                cur_freq = freq
+                n += (ts.stop - ts.start) * (bs.stop - bs.start) * per_row
+                if n >= self.batch_visibilities:
+                    plan.append(cur)
+                    cur, n = [], 0
+        if cur:
+            plan.append(cur)
+        columns = _Columns()
+        batches = [_Batch([([columns.read(ds, c, ts, bs) for c in names], self.pols[name],
+                            np.asarray(ds["frequency"].values, dtype=np.float64))
+                           for name, ds, ts, bs in jobs]) for jobs in plan]
+        self._plans[names] = batches
+        return batches
+
+    def _on_cluster(self, client: Any, kind: str, description: str,
+                    model: np.ndarray | None = None) -> dict[str, Any]:
+        """One pass as cluster tasks: a gridding task per batch (reading its own chunks),
+        the partial sums added by a tree of tasks; only the total comes back.
+
+        The density grid and the model image go to the cluster once (scattered), not with
+        every task.
+        """
+        import uuid
+
+        import dask
+
+        from xstack._progress import dask_progress
+
+        tag = uuid.uuid4().hex[:12]
+        density = None
+        if kind != "density" and self.density is not None:
+            density = client.scatter(self.density, hash=False)
+        shipped = None if model is None else client.scatter(np.asarray(model, dtype=np.float64),
+                                                            hash=False)
+        spec = self._spec()
+        level = [dask.delayed(_grid_task, pure=False)(
+                     spec, kind, batch, density, shipped,
+                     dask_key_name=f"{GRID_TASK}-{kind}-{tag}-{i}")
+                 for i, batch in enumerate(self._plan(kind))]
+        if not level:
+            return _empty_sums(spec, kind)
+        depth = 0
+        while len(level) > 1:
+            level = [dask.delayed(_sum_task, pure=False)(
+                         *level[i:i + _SUM_FAN_IN],
+                         dask_key_name=f"{SUM_TASK}-{kind}-{tag}-{depth}-{i}")
+                     for i in range(0, len(level), _SUM_FAN_IN)]
+            depth += 1
+        with dask_progress(description, enabled=self.progress):
+            (total,) = dask.compute(level[0])
+        return total
+
+    def _density_pass(self) -> None:
+        from xstack._cluster import active_client
+
+        client = active_client()
+        if client is not None:
+            grid = self._on_cluster(client, "density", "weights")["grid"]
+        else:
+            grid = np.zeros((self.ny, self.nx))
+            spec = self._spec()
+            for name, ds in self.parts:
+                freq = np.asarray(ds["frequency"].values, dtype=np.float64)
+                for ts, bs in _blocks(ds):
+                    _density_chunk(spec, grid, _read(ds, ts, bs, ["UVW", "WEIGHT", "FLAG"]),
+                                   self.pols[name], freq)
         self.density = grid
         self.f2 = kernels.briggs_f2(grid, self.robust) if self.weighting == "briggs" else 0.0
 
     # -- products
     def dirty_and_psf(self) -> dict[str, Any]:
-        """Normalised dirty image and PSF plus weight statistics."""
-        dirty = np.zeros((self.ny, self.nx))
-        psf = np.zeros((self.ny, self.nx))
-        sum_w = 0.0
-        sum_wf = 0.0
-        var_num = 0.0
-        nvis = 0
-        fmin, fmax = np.inf, -np.inf
-        moments = np.zeros(3)
-        for uvw, freq, w, v, raw in self._iter(True, "imaging"):
-            moments += uv_moments(uvw, freq, w)
-            kw = dict(epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads)
-            dirty += grid_visibilities(uvw, freq, v, w, self.ny, self.nx, self.cell, **kw)
-            psf += grid_visibilities(uvw, freq, np.ones_like(v), w, self.ny, self.nx, self.cell, **kw)
-            sum_w += float(w.sum())
-            # data weights are 1/sigma^2: the image noise is sum w_img^2 sigma^2 / (sum w_img)^2
-            var_num += float(np.sum(np.where(raw > 0, w * w / np.where(raw > 0, raw, 1.0), 0.0)))
-            sum_wf += float((w.sum(axis=0) * freq).sum())
-            nvis += int(np.count_nonzero(w))
-            used = freq[np.any(w > 0, axis=0)]
-            if used.size:
-                fmin, fmax = min(fmin, used.min()), max(fmax, used.max())
-        if not sum_w > 0:
+        """Normalised dirty image and PSF plus weight statistics.
+
+        With a ``distributed.Client`` active, each batch of store chunks is read and gridded
+        by a task on the cluster and the partial images are summed there; else in this
+        process (threads).
+        """
+        from xstack._cluster import active_client
+
+        client = active_client()
+        if client is not None:
+            acc: dict[str, Any] | None = self._on_cluster(client, "dirty", "imaging")
+        else:
+            acc = None
+            spec = self._spec()
+            for uvw, freq, w, v, raw in self._iter(True, "imaging"):
+                acc = _add_sums(acc, _dirty_sums(spec, uvw, freq, w, v, raw, self.nthreads))
+        if acc is None or not acc["sum_w"] > 0:
             raise NoDataError("no unflagged parallel-hand visibilities with positive weight to image")
+        sum_w = acc["sum_w"]
+        fmin, fmax = acc["fmin"], acc["fmax"]
         self.sum_weights = sum_w
-        return {"dirty": dirty / sum_w, "psf": psf / sum_w, "sum_weights": sum_w,
-                "noise_variance": var_num / sum_w**2,
-                "frequency": sum_wf / sum_w, "n_visibilities": nvis,
+        return {"dirty": acc["dirty"] / sum_w, "psf": acc["psf"] / sum_w, "sum_weights": sum_w,
+                "noise_variance": acc["var_num"] / sum_w**2,
+                "frequency": acc["sum_wf"] / sum_w, "n_visibilities": acc["nvis"],
                 "bandwidth": float(fmax - fmin) if np.isfinite(fmax) else 0.0,
-                "fmin": float(fmin), "fmax": float(fmax), "uv_moments": moments / sum_w}
+                "fmin": float(fmin), "fmax": float(fmax), "uv_moments": acc["moments"] / sum_w}
 
     def image_of_model(self, model: np.ndarray) -> np.ndarray:
         """Dirty image of a model image's predicted visibilities (same weights), normalised.
 
         ``residual = dirty - image_of_model(model)`` is the exact residual image (linearity).
+        On a cluster (an active ``distributed.Client``) each batch is predicted and gridded by
+        a task, the model sent to the cluster once per call.
         """
+        from xstack._cluster import active_client
+
+        client = active_client()
+        if client is not None:
+            return self._on_cluster(client, "model", "major cycle", model=model)["image"] \
+                / self.sum_weights
         out = np.zeros((self.ny, self.nx))
-        kw = dict(epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads)
+        spec = self._spec()
         for uvw, freq, w, _, _ in self._iter(False, "major cycle"):
-            vis = predict(model, self.cell_arcsec, uvw, freq, **kw)
-            out += grid_visibilities(uvw, freq, vis, w, self.ny, self.nx, self.cell, **kw)
+            out += _model_sums(spec, uvw, freq, w, model, self.nthreads)["image"]
         return out / self.sum_weights
 
     def primary_beam(self, frequency: float, main_lobe: bool = False) -> tuple[np.ndarray, float]:

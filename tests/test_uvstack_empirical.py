@@ -476,3 +476,54 @@ def test_real_evla_empirical_noise_and_error(evla):
     assert res20.n_positions == 20
     assert res20.flux_err_empirical_jy < res20.flux_err_jy / 100
     assert res20.weight_scale < 1e-4
+
+
+def test_pooled_scale_memory_is_bounded_by_the_pair_cap_not_the_block():
+    """The pooled factor keeps every k-th pair (at most MAX_PAIRS * 16), so its memory does
+    not grow with the block: it used to store every pair of the block (the block's size in
+    float64 pairs, ~1x a complex64 chunk) before subsampling. Same factor to the bit as the
+    every-pair computation (the plain-numpy twin below, same pairs, same medians)."""
+    import tracemalloc
+
+    from xstack._scatter import _MAD_BIAS, MAD_TO_SIGMA, MAX_PAIRS, pooled_weight_scale
+
+    rng = np.random.default_rng(12)
+    shape = (120, 351, 10, 2)
+    vis = (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(np.complex64) * 3.0
+    w = rng.uniform(0.5, 2.0, shape).astype(np.float32)
+    f = rng.random(shape) < 0.05
+    scale, n = pooled_weight_scale(vis, w, f)
+    big = np.tile(vis, (5, 1, 1, 1))  # 34 MB: the pair cap, not the block, sets the memory
+    tracemalloc.start()
+    try:
+        pooled_weight_scale(big, np.tile(w, (5, 1, 1, 1)), np.tile(f, (5, 1, 1, 1)))
+        tracemalloc.reset_peak()
+        pooled_weight_scale(big, 1.0, False)  # scalars broadcast: no weight/flag copies
+        peak = tracemalloc.get_traced_memory()[1] - tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    assert peak < 0.15 * big.nbytes, (peak, big.nbytes)
+    # plain numpy: every disjoint neighbour pair along the channels, per baseline/correlation
+    zr, zi = [], []
+    for b in range(shape[1]):
+        for p in range(shape[3]):
+            for t in range(shape[0]):
+                prev = None
+                for c in range(shape[2]):
+                    if f[t, b, c, p] or not w[t, b, c, p] > 0:
+                        prev = None
+                        continue
+                    cur = (complex(vis[t, b, c, p]), 1.0 / float(w[t, b, c, p]))
+                    if prev is None:
+                        prev = cur
+                        continue
+                    norm = 1.0 / np.sqrt(prev[1] + cur[1])
+                    zr.append((cur[0].real - prev[0].real) * norm)
+                    zi.append((cur[0].imag - prev[0].imag) * norm)
+                    prev = None
+    assert n == len(zr)
+    step = -(-n // (16 * MAX_PAIRS))
+    xr, xi = np.array(zr[::step]), np.array(zi[::step])
+    dev = np.concatenate([np.abs(xr - np.median(xr)), np.abs(xi - np.median(xi))])
+    s = MAD_TO_SIGMA * np.median(dev)
+    assert scale == pytest.approx(s * s * dev.size / (dev.size - _MAD_BIAS), rel=1e-12)

@@ -133,16 +133,11 @@ def _pair_scatter_numba(vis, weight, flag, pol_mask, along_time, min_pairs, max_
 
 
 @numba.njit(cache=True)
-def _pooled_scale_numba(vis, weight, flag, pol_mask, along_time, min_pairs, max_pairs):
-    """(measured / claimed) variance of all disjoint pairs of the block, and the pair count.
-
-    Each difference is normalised by the variance the weights claim for it,
-    ``z = d / sqrt(1/w1 + 1/w2)``, so ``Var(Re z) = scale`` when the weights are right up to
-    one factor; ``scale`` from the MAD of all normalised differences (as in the kernel above).
-    """
+def _pooled_pairs(vis, weight, flag, pol_mask, along_time, step, zr, zi):
+    """Walk the block's disjoint neighbour pairs (the order of :func:`_pooled_scale_numba`);
+    store the normalised difference of every ``step``-th pair in ``zr``/``zi`` (when they
+    have room). Returns the number of pairs."""
     nt, nb, nc, npol = vis.shape
-    zr = np.empty(max(1, nt * nb * nc * npol // 2 + 1))
-    zi = np.empty(zr.size)
     n = 0
     for b in range(nb):
         for p in range(npol):
@@ -165,21 +160,38 @@ def _pooled_scale_numba(vis, weight, flag, pol_mask, along_time, min_pairs, max_
                         vr = np.float64(v.real)
                         vi = np.float64(v.imag)
                         if prev:
-                            norm = 1.0 / math.sqrt(pinv + 1.0 / w)
-                            zr[n] = (vr - pr) * norm
-                            zi[n] = (vi - pim) * norm
+                            if n % step == 0 and n // step < zr.size:
+                                norm = 1.0 / math.sqrt(pinv + 1.0 / w)
+                                zr[n // step] = (vr - pr) * norm
+                                zi[n // step] = (vi - pim) * norm
                             n += 1
                             ok = False
                         pr = vr
                         pim = vi
                         pinv = 1.0 / w
                     prev = ok
+    return n
+
+
+@numba.njit(cache=True)
+def _pooled_scale_numba(vis, weight, flag, pol_mask, along_time, min_pairs, max_pairs):
+    """(measured / claimed) variance of all disjoint pairs of the block, and the pair count.
+
+    Each difference is normalised by the variance the weights claim for it,
+    ``z = d / sqrt(1/w1 + 1/w2)``, so ``Var(Re z) = scale`` when the weights are right up to
+    one factor; ``scale`` from the MAD of every k-th normalised difference, k = ceil(pairs /
+    max_pairs) (as in the kernel above). Two walks over the block -- one counts the pairs,
+    one keeps every k-th -- so memory is O(max_pairs), not O(block).
+    """
+    empty = np.empty(0)
+    n = _pooled_pairs(vis, weight, flag, pol_mask, along_time, 1, empty, empty)
     if n < min_pairs or n == 0:
         return np.nan, n
     step = (n + max_pairs - 1) // max_pairs
-    xr = zr[:n:step].copy()
-    xi = zi[:n:step].copy()
-    k = xr.size
+    k = (n + step - 1) // step
+    xr = np.empty(k)
+    xi = np.empty(k)
+    _pooled_pairs(vis, weight, flag, pol_mask, along_time, step, xr, xi)
     mr = np.median(xr)
     mi = np.median(xi)
     dev = np.empty(2 * k)

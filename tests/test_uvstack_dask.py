@@ -171,7 +171,7 @@ def test_row_substeps_inside_a_chunk(problem, monkeypatch):
     import xstack.uvstack.stack as st
 
     ds, cat, ref = problem
-    monkeypatch.setattr(st, "_ROWS_PER_STEP", 7)
+    monkeypatch.setattr(st, "_STEP_BYTES", 7 * 3 * 16)  # 7 rows of 3 channels per step
     res = stack_uv(xr.DataTree.from_dict({"p": ds}), cat)
     assert res.flux_jy == pytest.approx(ref["flux_jy"], rel=1e-10)
     ok = np.isfinite(ref["stacked"]["p"])

@@ -483,6 +483,61 @@ def _describe_chunk(array: Any, key: Any) -> tuple[str, str]:
     return (f"{where} ({', '.join(ranges)})" if ranges else where), chunk
 
 
+#: xarray's wrappers around a zarr array that leave its values as they are
+_IDENTITY_WRAPPERS = ("ImplicitToExplicitIndexingAdapter", "CopyOnWriteArray")
+
+
+def _read_raw_chunk(array: Any, key: Any) -> np.ndarray | None:
+    """The block ``key`` read straight from its chunk file, or None to let zarr read it.
+
+    For a chunk of a local zarr v3 array with a plain codec chain (``bytes``, optionally
+    ``zstd`` or ``blosc``: what xstack writes; :class:`xstack.io._store.ChunkFiles`) the file
+    is read (raw) or decompressed straight into the block's own array, so a read holds the
+    block once, plus the compressed bytes. zarr's path holds it about three times (the file's
+    bytes, the decoded chunk, the output it is copied into): most of a uv-stack's memory per
+    chunk. Only when xarray leaves the values alone (no decoding wrapper, no pending index)
+    and ``key`` lies in one chunk; anything else (other codecs, sharding, remote stores, a
+    damaged file) goes to zarr.
+    """
+    inner = array
+    for _ in range(8):
+        kind = type(inner).__name__
+        if kind in _IDENTITY_WRAPPERS:
+            inner = inner.array
+        elif kind == "LazilyIndexedArray":
+            if any(k != slice(None) for k in inner.key.tuple):
+                return None
+            inner = inner.array
+        else:
+            break
+    zarr_array = getattr(inner, "_array", None) if type(inner).__name__ == "ZarrArrayWrapper" \
+        else None
+    slices = key if isinstance(key, tuple) else (key,)
+    if zarr_array is None or len(slices) != zarr_array.ndim or \
+            not all(isinstance(k, slice) and k.step in (None, 1) for k in slices):
+        return None
+    from xstack.io._store import ChunkFiles
+
+    files = ChunkFiles.for_array(zarr_array)
+    if files is None:
+        return None
+    coords, region = [], []
+    for k, size, chunk in zip(slices, zarr_array.shape, files.chunk_shape, strict=True):
+        start, stop = k.start or 0, size if k.stop is None else k.stop
+        if start % chunk or not 0 < stop - start <= chunk or stop > size:
+            return None
+        coords.append(start // chunk)
+        region.append(slice(0, stop - start))
+    block = np.empty(files.chunk_shape, dtype=files.dtype)
+    if not files.read_into(tuple(coords), block):
+        return None  # a damaged chunk file: zarr's read reports it
+    region = tuple(region)
+    if all(r.stop == c for r, c in zip(region, files.chunk_shape)):
+        return block
+    # an edge chunk: the array's part of it (a copy when the view would not be contiguous)
+    return np.ascontiguousarray(block[region])
+
+
 def read_chunk(array: Any, key: Any, asarray: bool = True, lock: Any = None) -> Any:
     """Read one block of a store-backed dask array (the ``getitem`` of :func:`open_store`).
 
@@ -495,6 +550,9 @@ def read_chunk(array: Any, key: Any, asarray: bool = True, lock: Any = None) -> 
     from dask.array.core import getter
 
     try:
+        direct = _read_raw_chunk(array, key)
+        if direct is not None:
+            return direct
         return getter(array, key, asarray=asarray, lock=lock)
     except (MemoryError, KeyboardInterrupt, XstackError):
         raise

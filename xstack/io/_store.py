@@ -149,6 +149,30 @@ class ChunkFiles:
             done = os.pwrite(fd, view, offset)
             view, offset = view[done:], offset + done
 
+    def read_into(self, coords: tuple[int, ...], out: np.ndarray) -> bool:
+        """Read the chunk at ``coords`` into ``out`` (C-contiguous, the chunk's shape and dtype).
+
+        Raw chunks are read straight into ``out``; compressed ones are decompressed into it,
+        so memory holds ``out`` plus the compressed bytes (zarr's own read also holds the
+        decoded chunk before copying it out). A chunk never written holds the fill value.
+        Returns False if the file does not have the chunk's size (a damaged chunk: the
+        caller lets zarr read it and report).
+        """
+        target = memoryview(out.reshape(-1).view(np.uint8))
+        try:
+            with open(self.path(coords), "rb", buffering=0) as fh:
+                if self._compressor is None:
+                    return fh.readinto(target) == self.chunk_nbytes
+                data = fh.read()
+        except FileNotFoundError:
+            out.fill(self.fill_value)
+            return True
+        try:
+            self._compressor.decode(data, out=target)
+        except Exception:  # noqa: BLE001 - damaged: zarr's read reports it
+            return False
+        return True
+
     def write(self, coords: tuple[int, ...], chunk: np.ndarray) -> None:
         """Encode and write one whole chunk (``chunk`` has exactly the chunk shape and dtype)."""
         if chunk.shape != self.chunk_shape or chunk.dtype != self.dtype or not chunk.flags.c_contiguous:

@@ -470,24 +470,31 @@ def _block_phasor(uvw_block, params, frequency, engine, antennas=None, rows=None
     return ph.reshape(nt, nb, len(frequency)), engine
 
 
-#: Rows per phasor evaluation inside a chunk: bounds the phasor temporaries to ~20 MB
-_ROWS_PER_STEP = 65536
+#: Bytes of phasor (complex128 per row and channel) evaluated at a time inside a chunk: the
+#: phasor's temporaries stay a few steps of this size whatever the chunk and the number of
+#: channels (a fixed row count made a whole 256-channel chunk's phasor at once: 1x the chunk)
+_STEP_BYTES = 8 * 2**20
 
 
-def _steps(nt, nb):
-    """(time slice, baseline slice) sub-blocks of about ``_ROWS_PER_STEP`` rows.
+def _rows_per_step(nchan: int) -> int:
+    return max(1, _STEP_BYTES // (16 * max(int(nchan), 1)))
+
+
+def _steps(nt, nb, nchan):
+    """(time slice, baseline slice) sub-blocks whose phasor holds about ``_STEP_BYTES``.
 
     Whole integrations when they fit (the antenna path factorises per integration), else
     baseline ranges of one integration (a subset of baselines factorises as well).
     """
-    if nb <= _ROWS_PER_STEP:
-        tstep = max(1, _ROWS_PER_STEP // max(nb, 1))
+    rows = _rows_per_step(nchan)
+    if nb <= rows:
+        tstep = max(1, rows // max(nb, 1))
         for t0 in range(0, nt, tstep):
             yield slice(t0, t0 + tstep), slice(None)
     else:
         for t0 in range(nt):
-            for b0 in range(0, nb, _ROWS_PER_STEP):
-                yield slice(t0, t0 + 1), slice(b0, b0 + _ROWS_PER_STEP)
+            for b0 in range(0, nb, rows):
+                yield slice(t0, t0 + 1), slice(b0, b0 + rows)
 
 
 def _antennas(a1, a2, bsl):
@@ -503,7 +510,7 @@ def _block_phasor_chunk(uvw, params, a1, a2, frequency, engine, tol_rad):
     nt, nb = uvw.shape[:2]
     nchan = len(frequency)
     ph = np.empty((nt, nb, nchan + 1), dtype=np.complex128)
-    for tsl, bsl in _steps(nt, nb):
+    for tsl, bsl in _steps(nt, nb, nchan):
         ph[tsl, bsl, :nchan], used = _block_phasor(uvw[tsl, bsl], params, frequency, engine,
                                                    _antennas(a1, a2, bsl), tol_rad=tol_rad)
         ph[tsl, bsl, nchan] = _ROW_ENGINES.index(used)
@@ -546,7 +553,7 @@ def _block_sums(vis, weight, flag, uvw, params, a1, a2, frequency, engine, tol_r
     counts: dict[str, int] = {}
     pm = np.asarray(pol_mask, dtype=bool)
     noise = _block_noise(vis, weight, flag, pm)
-    for tsl, bsl in _steps(*vis.shape[:2]):
+    for tsl, bsl in _steps(*vis.shape[:3]):
         v, w, f, x = (a[tsl, bsl] for a in (vis, weight, flag, uvw))
         nt, nb, nc, npol = v.shape
         n = nt * nb

@@ -8,8 +8,9 @@ sources first, then random ones: the expected stacked flux is sources / position
 twice, each time in a fresh child process:
 
 * ``threads``: dask's threaded scheduler, 2 threads, the command line's bounded heap;
-* ``cluster``: a ``distributed.LocalCluster`` of 2 worker processes x 1 thread (the same heap
-  setting through ``distributed.nanny.pre-spawn-environ``).
+* ``cluster``: a ``distributed.LocalCluster`` of 2 worker processes x 1 thread, configured as
+  ``--workers`` starts it (``xstack._cluster.LOCAL_CLUSTER_CONFIG``: worker-saturation 1.0,
+  the bounded heap in the workers).
 
 Printed per run: wall time, throughput, peak resident memory (threads: the process; cluster:
 the largest worker, sampled every 10 ms from outside) above the process's start and as a
@@ -74,7 +75,8 @@ chunk_mb = vis.nbytes / vis.npartitions / 2**20
 client = cluster = None
 if mode == "cluster":
     from distributed import Client, LocalCluster
-    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 1048576}):
+    from xstack._cluster import LOCAL_CLUSTER_CONFIG
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):  # what `--workers N` starts
         cluster = LocalCluster(n_workers=nthreads, threads_per_worker=1, processes=True,
                                dashboard_address=None)
     client = Client(cluster)
@@ -184,6 +186,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="threads / worker processes")
     parser.add_argument("--workdir", default=None, help="where the stores go (default: a temp dir)")
     parser.add_argument("--keep", action="store_true", help="keep the stores")
+    parser.add_argument("--schedulers", default="threads,cluster",
+                        help="which of threads, cluster to run per size")
     args = parser.parse_args()
     work = Path(args.workdir or tempfile.mkdtemp(prefix="xstack-scale-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -221,7 +225,7 @@ def main() -> None:
                 extra.unlink()
 
     for size in sizes:
-        row(size, args.chunk_mb, ("threads", "cluster"))
+        row(size, args.chunk_mb, tuple(args.schedulers.split(",")))
     if args.sweep:
         print("\nchunk-size sweep:\n")
         header()

@@ -439,3 +439,16 @@ def test_killed_worker_mid_stack_same_answer(data, tmp_path):
     _same(got.to_dict(), ref.to_dict(), rel=0)
     np.testing.assert_array_equal(open_store(tmp_path / "got.zarr")["p"]["VISIBILITY"].values,
                                   open_store(tmp_path / "ref.zarr")["p"]["VISIBILITY"].values)
+
+
+def test_local_cluster_holds_one_queued_read_per_thread():
+    """``--workers N`` starts its cluster with worker-saturation 1.0 (distributed's 1.1 rounds
+    up to two queued chunk reads per thread: 5.3-7.7 instead of 3.5-4.0 chunks per worker in
+    benchmarks/bench_scale.py) and the workers' bounded heap."""
+    import os
+
+    with use_cluster(workers=1) as client:
+        saturation = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.WORKER_SATURATION)
+        env = client.run(lambda: os.environ.get("MALLOC_MMAP_THRESHOLD_"))
+    assert saturation == 1.0
+    assert set(env.values()) == {"1048576"}

@@ -198,16 +198,31 @@ def use_cluster(scheduler: str | None = None, workers: int | None = None) -> Ite
         client.close()
 
 
+#: dask configuration of the local clusters xstack starts (``--workers N``), recommended for
+#: any scheduler that runs xstack (docs/cluster.md). ``worker-saturation`` 1.0: the scheduler
+#: gives a worker at most one root task (a chunk read) per thread at a time (distributed's
+#: default 1.1 rounds up to two per thread), so a single-threaded worker holds 3.5-4.0 chunks
+#: instead of 5.3-7.7 at the peak of a uv-stack (benchmarks/bench_scale.py, 1-16 GB); and
+#: the workers return freed chunk arrays to the OS (what :func:`xstack._memory.bound_heap`
+#: does for the command line's process).
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.scheduler.worker-saturation": 1.0,
+    "distributed.nanny.pre-spawn-environ.MALLOC_MMAP_THRESHOLD_": 1048576,
+}
+
+
 @contextlib.contextmanager
 def _local_cluster(workers: int) -> Iterator[Any]:
     import logging
 
+    import dask
     from dask.system import CPU_COUNT
     from distributed import Client, LocalCluster
 
     threads = max(1, CPU_COUNT // workers)
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR)
     try:
         client = Client(cluster, set_as_default=True)
         try:

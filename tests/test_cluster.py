@@ -31,6 +31,7 @@ from xstack.errors import OptionError
 from xstack.schema import open_store, write_store
 
 distributed = pytest.importorskip("distributed")
+from _cluster_helpers import TaskCounter, local_cluster  # noqa: E402
 
 # the small data's warnings (weights vs scatter, few targets) are not what is tested here
 pytestmark = pytest.mark.filterwarnings("ignore::xstack.errors.XstackWarning")
@@ -39,33 +40,10 @@ pytestmark = pytest.mark.filterwarnings("ignore::xstack.errors.XstackWarning")
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
 
-class TaskCounter(distributed.diagnostics.plugin.SchedulerPlugin):
-    """Counts tasks that finished (reached memory) on the scheduler."""
-
-    name = "xstack-test-task-counter"
-
-    def __init__(self) -> None:
-        self.finished = 0
-        self.keys: list[str] = []
-
-    def transition(self, key, start, finish, *args, **kwargs) -> None:
-        if finish == "memory" and start == "processing":
-            self.finished += 1
-            self.keys.append(str(key))
-
-
 @pytest.fixture(scope="module")
 def cluster():
-    with dask.config.set({"distributed.comm.timeouts.connect": "3s"}):
-        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                           dashboard_address=None)
-        try:
-            counter = TaskCounter()
-            cluster.scheduler.add_plugin(counter)  # the scheduler lives in this process
-            cluster.counter = counter
-            yield cluster
-        finally:
-            cluster.close()
+    with local_cluster() as cluster:
+        yield cluster
 
 
 @pytest.fixture(scope="module")

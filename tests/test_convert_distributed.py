@@ -16,7 +16,6 @@ import threading
 import time
 from pathlib import Path
 
-import dask
 import numpy as np
 import pytest
 import zarr
@@ -30,6 +29,7 @@ from xstack.schema import open_store
 from xstack.testing import make_test_ms
 
 distributed = pytest.importorskip("distributed")
+from _cluster_helpers import TaskCounter, local_cluster  # noqa: E402
 
 FILL_KEY = "xstack-convert-fill"
 #: Attributes that hold the time of writing (they differ between any two conversions).
@@ -46,22 +46,8 @@ VARIANTS = {
 }
 
 
-class TaskCounter(distributed.diagnostics.plugin.SchedulerPlugin):
-    """Keys of the tasks that finished on the scheduler, and the workers they ran on."""
-
-    name = "xstack-test-convert-task-counter"
-
-    def __init__(self) -> None:
-        self.keys: list[str] = []
-        self.workers: list[str] = []
-        self.processing: list[str] = []
-
-    def transition(self, key, start, finish, *args, **kwargs) -> None:
-        if finish == "processing":
-            self.processing.append(str(key))
-        if finish == "memory" and start == "processing":
-            self.keys.append(str(key))
-            self.workers.append(str(kwargs.get("worker")))
+class FillCounter(TaskCounter):
+    """The scheduler's tasks, and which of them filled chunks."""
 
     def fills(self, since: int = 0) -> list[str]:
         return [k for k in self.keys[since:] if k.startswith(FILL_KEY)]
@@ -69,15 +55,8 @@ class TaskCounter(distributed.diagnostics.plugin.SchedulerPlugin):
 
 @pytest.fixture(scope="module")
 def cluster():
-    with dask.config.set({"distributed.comm.timeouts.connect": "3s"}):
-        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                           dashboard_address=":0")
-        try:
-            cluster.counter = TaskCounter()
-            cluster.scheduler.add_plugin(cluster.counter)  # the scheduler lives in this process
-            yield cluster
-        finally:
-            cluster.close()
+    with local_cluster(FillCounter()) as cluster:
+        yield cluster
 
 
 @pytest.fixture(scope="module")
@@ -358,7 +337,7 @@ def test_killed_worker_mid_convert(tmp_path):
     ref = convert_ms(ms, tmp_path / "ref.zarr", chunks=chunks)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=":0") as lc:
-        counter = TaskCounter()
+        counter = FillCounter()
         lc.scheduler.add_plugin(counter)
         killed = []
 

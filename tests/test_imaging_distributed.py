@@ -18,10 +18,8 @@ images are compared to 1e-6 (as the beam in ``tests/test_cluster.py``).
 from __future__ import annotations
 
 import json
-import logging
 
 import cloudpickle
-import dask
 import numpy as np
 import pytest
 from _uvstack_helpers import VLA_CENTER, make_stack_partition
@@ -36,6 +34,7 @@ from xstack.imaging.clean import clean_data
 from xstack.schema import write_store
 
 distributed = pytest.importorskip("distributed")
+from _cluster_helpers import TaskCounter, local_cluster  # noqa: E402
 
 pytestmark = pytest.mark.filterwarnings("ignore::xstack.errors.XstackWarning")
 
@@ -46,36 +45,22 @@ SUM = "xstack-image-sum"
 REL = 1e-12
 
 
-class TaskCounter(distributed.diagnostics.plugin.SchedulerPlugin):
-    """Keys of the tasks that finished on the scheduler (processing -> memory)."""
-
-    name = "xstack-test-imaging-task-counter"
+class GridCounter(TaskCounter):
+    """The scheduler's tasks, and the pickled size of each gridding task's spec."""
 
     def __init__(self) -> None:
-        self.keys: list[str] = []
-        self.spec_bytes: dict[str, int] = {}  # pickled size of each gridding task's spec
-        self.scheduler = None
+        super().__init__()
+        self.spec_bytes: dict[str, int] = {}
 
-    def transition(self, key, start, finish, *args, **kwargs) -> None:
-        if start == "processing" and finish == "memory":
-            self.keys.append(str(key))
-            if str(key).startswith(GRID):
-                spec = self.scheduler.tasks[key].run_spec
-                self.spec_bytes[str(key)] = len(cloudpickle.dumps(spec))
+    def on_finished(self, key) -> None:
+        if str(key).startswith(GRID):
+            self.spec_bytes[str(key)] = len(cloudpickle.dumps(self.scheduler.tasks[key].run_spec))
 
 
 @pytest.fixture(scope="module")
 def cluster():
-    with dask.config.set({"distributed.comm.timeouts.connect": "3s"}):
-        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                           dashboard_address=":0", silence_logs=logging.ERROR)
-        try:
-            cluster.counter = TaskCounter()
-            cluster.counter.scheduler = cluster.scheduler
-            cluster.scheduler.add_plugin(cluster.counter)  # the scheduler lives in this process
-            yield cluster
-        finally:
-            cluster.close()
+    with local_cluster(GridCounter()) as cluster:
+        yield cluster
 
 
 @pytest.fixture(scope="module")

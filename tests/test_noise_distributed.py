@@ -35,6 +35,7 @@ from xstack.errors import OptionError
 from xstack.schema import open_store, write_store
 
 distributed = pytest.importorskip("distributed")
+from _cluster_helpers import local_cluster  # noqa: E402
 
 # the small data's warnings (weights vs scatter, few targets) are not what is tested here
 pytestmark = [pytest.mark.filterwarnings("ignore::xstack.errors.XstackWarning"),
@@ -46,30 +47,10 @@ cloudpickle.register_pickle_by_value(sys.modules[__name__])
 N_CHUNKS = 8  # 2 pointings x 4 time chunks
 
 
-class TaskCounter(distributed.diagnostics.plugin.SchedulerPlugin):
-    """The keys of the tasks that finished on the scheduler."""
-
-    name = "xstack-test-noise-task-counter"
-
-    def __init__(self) -> None:
-        self.keys: list[str] = []
-
-    def transition(self, key, start, finish, *args, **kwargs) -> None:
-        if finish == "memory" and start == "processing":
-            self.keys.append(str(key))
-
-
 @pytest.fixture(scope="module")
 def cluster():
-    with dask.config.set({"distributed.comm.timeouts.connect": "3s"}):
-        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                           dashboard_address=None)
-        try:
-            cluster.counter = TaskCounter()
-            cluster.scheduler.add_plugin(cluster.counter)  # the scheduler lives here
-            yield cluster
-        finally:
-            cluster.close()
+    with local_cluster() as cluster:
+        yield cluster
 
 
 def _block_tasks(cluster, since: int) -> int:

@@ -219,7 +219,9 @@ def test_failed_task_fails_the_convert_and_leaves_nothing(mss, tmp_path, monkeyp
         calls.append(threading.get_ident())
         if len(calls) == 3:
             raise XstackError("injected read failure")
-        time.sleep(0.05)
+        # a read already under way when the failure happens takes long enough for the client
+        # to hear of it and set the stop flag before any later task starts (no race)
+        time.sleep(0.05 if len(calls) < 3 else 1.0)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(msread, "read_block", failing)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from dask.callbacks import Callback
 
 from xstack.coords import SPEED_OF_LIGHT, radec_to_lmn
 from xstack.schema import baseline_pairs, new_partition
@@ -95,3 +96,15 @@ def direct_eq4(uvw_rows, freq, l, m, n, weight, inv_att):
         for c, nu in enumerate(freq):
             out[:, c] += weight[k] * inv_att[k, c] * np.exp(2j * np.pi * proj * nu / SPEED_OF_LIGHT)
     return out / np.sum(weight)
+
+
+class CountVisibilityReads(Callback):
+    """Counts the executed tasks that produce VISIBILITY chunks (dask's local schedulers)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads = 0
+
+    def _posttask(self, key, result, dsk, state, id):
+        if "VISIBILITY" in str(key[0] if isinstance(key, tuple) else key):
+            self.reads += 1

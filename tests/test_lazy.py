@@ -8,7 +8,7 @@ from __future__ import annotations
 import dask
 import numpy as np
 import pytest
-from _uvstack_helpers import VLA_CENTER, make_stack_partition
+from _uvstack_helpers import VLA_CENTER, CountVisibilityReads, make_stack_partition
 from astropy.table import Table
 from dask.callbacks import Callback
 
@@ -50,16 +50,7 @@ def test_lazy_equals_eager_and_reference(store):
     assert dask.compute(lazy)[0].flux_jy == res.flux_jy
 
 
-class _CountReads(Callback):
-    """Counts the executed tasks that produce VISIBILITY chunks of the store."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.reads = 0
-
-    def _posttask(self, key, result, dsk, state, id):
-        if "VISIBILITY" in str(key[0] if isinstance(key, tuple) else key):
-            self.reads += 1
+_CountReads = CountVisibilityReads
 
 
 def test_two_lazy_stacks_share_one_pass(store):

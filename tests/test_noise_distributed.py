@@ -23,8 +23,7 @@ import cloudpickle
 import dask
 import numpy as np
 import pytest
-from _uvstack_helpers import VLA_CENTER, make_stack_partition
-from dask.callbacks import Callback
+from _uvstack_helpers import VLA_CENTER, CountVisibilityReads, make_stack_partition
 
 import xstack
 from xstack._cluster import use_cluster
@@ -199,16 +198,7 @@ def test_block_plan_is_one_key_per_pointing(data):
         assert len(pickle.dumps(graph[key])) < plan_bytes / 10
 
 
-class _CountReads(Callback):
-    """Counts executed tasks that produce VISIBILITY chunks (dask's local schedulers)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.reads = 0
-
-    def _posttask(self, key, result, dsk, state, id):
-        if "VISIBILITY" in str(key[0] if isinstance(key, tuple) else key):
-            self.reads += 1
+_CountReads = CountVisibilityReads
 
 
 def test_stack_and_noise_in_one_pass(data):

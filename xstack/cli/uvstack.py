@@ -68,6 +68,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="number of uv-distance bins of the profile (default 20)")
     p.add_argument("--profile-png", default=None, metavar="P",
                    help="uv-profile plot (default OUT_uvprofile.png next to OUT.zarr)")
+    p.add_argument("--no-png", action="store_true",
+                   help="do not draw the uv-profile plot (the ECSV table is still written)")
     add_data_group(p)
     p.add_argument("--autocorrelations", action="store_true",
                    help="stack autocorrelations too (default: left out; they measure system power, "
@@ -106,20 +108,35 @@ def first_error(res: Any, errors: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    import contextlib
+
+    from xstack.cli._plotter import BackgroundPlotter
+
+    with (BackgroundPlotter(preload=("astropy.table", "xstack.uvstack.plot"))
+          if not args.no_png else contextlib.nullcontext()) as plotter:
+        # the plot's imports run in a second process while this one stacks (_plotter.py)
+        return _run(args, plotter)
+
+
+def _run(args: argparse.Namespace, plotter: Any) -> int:
     from xstack._atomic import atomic_output, check_output
     from xstack._inputs import Positions
     from xstack.cli import emit_json
-    from xstack.uvstack.stack import plot_uv_profile, stack_uv
+    from xstack.uvstack.stack import stack_uv
 
     if len(args.inputs) < 3:
         raise XstackError("need DATA... CATALOG OUT.zarr (at least three arguments)")
     data, catalog, out = args.inputs[:-2], args.inputs[-2], cli_path(args.inputs[-1])
     stem = _stem(out)
     ecsv = cli_path(f"{stem}_uvprofile.ecsv")
-    png = cli_path(args.profile_png) if args.profile_png else cli_path(f"{stem}_uvprofile.png")
+    png = None if args.no_png else cli_path(args.profile_png) if args.profile_png \
+        else cli_path(f"{stem}_uvprofile.png")
+    if args.no_png and args.profile_png:
+        raise XstackError("--profile-png and --no-png contradict each other")
     # everything that can be checked is checked before any computation
     for path in (out, ecsv, png):
-        check_output(path, args.overwrite)
+        if path is not None:
+            check_output(path, args.overwrite)
     for d in data:
         if not is_url(d) and not Path(d).exists():  # a URL: checked when opened
             raise XstackError(f"{d}: no such store or MeasurementSet")
@@ -150,13 +167,17 @@ def run(args: argparse.Namespace) -> int:
                        "n_positions": res.n_positions})
     with atomic_output(ecsv, overwrite=args.overwrite) as tmp:
         table.write(str(tmp), format="ascii.ecsv")
-    plot_uv_profile(table, png, overwrite=args.overwrite, flux_jy=res.flux_jy,
-                    title=f"uv-stack of {res.n_positions} positions")
+    if png is not None:
+        image = plotter.render("xstack.uvstack.plot:uv_profile_figure", table,
+                               flux_jy=res.flux_jy, title=f"uv-stack of {res.n_positions} positions")
+        with atomic_output(png, overwrite=args.overwrite) as tmp:
+            Path(tmp).write_bytes(image)
     seconds = time.perf_counter() - t0
     if args.json:
         emit_json({**res.to_dict(), "errors": args.errors, "errors_first": first,
                    "output": str(out), "profile_table": str(ecsv),
-                   "profile_png": str(png), "seconds": round(seconds, 3)})
+                   "profile_png": None if png is None else str(png),
+                   "seconds": round(seconds, 3)})
     else:
         from xstack.cli._output import count, detail, figure, result
 
@@ -169,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
                f"({errs[first][1]}; {errs[other][1]}: ± {other_err[0]} {other_err[1]}) from "
                f"{count(res.n_positions, 'position')}, "
                f"{count(res.n_visibilities, 'visibility')}")
-        result(f"  wrote {out}, {ecsv}, {png}")
+        result(f"  wrote {out}, {ecsv}" + (f", {png}" if png is not None else ""))
         detail(f"weighting {args.weighting}, primary beam {args.primary_beam}, "
                f"engine {args.engine}, {count(len(res.stacked), 'partition')}: "
                f"{', '.join(sorted(map(str, res.stacked)))}")

@@ -1,13 +1,14 @@
 """Model fitting of stacked data: uv-domain (:func:`fit_uv`) and image-domain PSF fitting
 (:func:`fit_image`), paper section 3.4, and pictures of the fits (:func:`plot_uv_fit`,
-:func:`plot_image_fit`). See ``docs/fit.md``."""
+:func:`plot_image_fit`). See ``docs/fit.md``. Stacked line spectra: :func:`fit_line` (a
+Gaussian with the bins' covariance) and :func:`integrate_line` (``docs/linestack.md``)."""
 
 from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["FitResult", "ImageFitOptions", "UvFitOptions", "fit_image", "fit_uv", "plot_image_fit",
-           "plot_uv_fit"]
+__all__ = ["FitResult", "ImageFitOptions", "LineFit", "UvFitOptions", "fit_image", "fit_line",
+           "fit_uv", "integrate_line", "plot_image_fit", "plot_uv_fit"]
 
 
 def __getattr__(name: str) -> Any:
@@ -26,6 +27,9 @@ def __getattr__(name: str) -> Any:
     if name == "FitResult":
         from xstack.fit.result import FitResult
         return FitResult
+    if name in ("fit_line", "integrate_line", "LineFit"):
+        from xstack.fit import line
+        return getattr(line, name)
     if name in ("plot_uv_fit", "plot_image_fit"):
         from xstack.fit import plot
         return getattr(plot, name)

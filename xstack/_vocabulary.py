@@ -41,3 +41,7 @@ SUBTRACT_PRIMARY_BEAMS = PRIMARY_BEAM_MODELS
 # fitting (xstack.fit)
 FIT_MODELS = ("point", "gaussian")
 NOISE_CORRELATIONS = ("psf", "residual", "none")
+
+# spectral-line stacking (xstack.frames, xstack.uvstack.line): the frames line stacks are
+# made in (TOPO data are converted per integration, xstack.frames.frame_ratio)
+LINE_FRAMES = ("lsrk", "bary")

@@ -33,6 +33,7 @@ import numpy as np
 import xarray as xr
 
 from xstack.errors import SchemaError
+from xstack.frames import frequency_frame, msv4_observer
 from xstack.schema import SCHEMA_VERSION
 
 #: The MSv4 schema version xstack writes (xradio 1.3.0's ``VisibilityXds``).
@@ -101,11 +102,13 @@ def encode_partition(ds: xr.Dataset, *, creator_version: str) -> dict[str, xr.Da
     freq = np.asarray(ds["frequency"].values, dtype=np.float64)
     width = np.asarray(ds["channel_width"].values, dtype=np.float64)
     spw_name = str(attrs.get("spectral_window_name", f"spw{attrs['spectral_window_id']}"))
+    # the frame the channel frequencies are in, in xradio's spelling (absent: TOPO)
+    observer = msv4_observer(frequency_frame(ds))
     freq_attrs = {
-        "type": "spectral_coord", "units": "Hz", "observer": "TOPO",
+        "type": "spectral_coord", "units": "Hz", "observer": observer,
         "spectral_window_name": spw_name, "spectral_window_intents": ["UNSPECIFIED"],
         "reference_frequency": _quantity(freq[0] if freq.size else 0.0, "Hz", "spectral_coord",
-                                         observer="TOPO"),
+                                         observer=observer),
         "channel_width": _quantity(float(np.median(width)) if width.size else 0.0, "Hz"),
     }
     field = str(attrs["field_name"])
@@ -349,8 +352,12 @@ def decode_partition(node: xr.DataTree, name: str, *, data_group: str | None = N
         else:
             widths = np.full(ds.sizes["frequency"], np.nan if width is None else width)
         ds = ds.assign_coords(channel_width=("frequency", widths, {"units": "Hz"}))
+    # the internal view keeps the frame (xstack.frames.frequency_frame) in MSv4's spelling
+    internal_freq = {"units": "Hz"}
+    if freq_attrs.get("observer"):
+        internal_freq["observer"] = str(freq_attrs["observer"])
     ds = ds.assign_coords(frequency=("frequency", np.asarray(ds["frequency"].values, np.float64),
-                                     {"units": "Hz"}))
+                                     internal_freq))
     # the internal attributes of the variables MSv4 describes in its own words
     for var, internal_attrs in _INTERNAL_ATTRS.items():
         if var in ds.variables:

@@ -109,6 +109,7 @@ def new_partition(
     telescope_name: str = "unknown",
     integration_time: float | None = None,
     attrs: Mapping[str, Any] | None = None,
+    frequency_frame: str | None = None,
 ) -> xr.Dataset:
     """Build one partition Dataset in the xstack schema from plain or dask arrays.
 
@@ -133,6 +134,10 @@ def new_partition(
         (ra, dec) of the phase center, radians, ICRS.
     attrs
         Extra JSON-serialisable attributes (provenance, stacking options...).
+    frequency_frame
+        The spectral frame of ``frequency`` (``"TOPO"``, ``"LSRK"``, ``"BARY"``...; see
+        :mod:`xstack.frames`), kept as the coordinate's ``observer`` attribute; default: not
+        said, which :func:`xstack.frames.frequency_frame` reads as TOPO.
     """
     antenna1 = np.asarray(antenna1, dtype=np.int32)
     antenna2 = np.asarray(antenna2, dtype=np.int32)
@@ -148,7 +153,9 @@ def new_partition(
         "baseline_antenna2_id": ("baseline_id", antenna2),
         "baseline_antenna1_name": ("baseline_id", names[antenna1] if nbl else as_strings([])),
         "baseline_antenna2_name": ("baseline_id", names[antenna2] if nbl else as_strings([])),
-        "frequency": ("frequency", np.asarray(frequency, dtype=np.float64), {"units": "Hz"}),
+        "frequency": ("frequency", np.asarray(frequency, dtype=np.float64),
+                      {"units": "Hz", **({} if frequency_frame is None
+                                         else {"observer": _observer(frequency_frame)})}),
         "channel_width": ("frequency", np.asarray(channel_width, dtype=np.float64),
                           {"units": "Hz"}),
         "polarization": ("polarization", as_strings(polarization)),
@@ -186,6 +193,13 @@ def new_partition(
     ds = xr.Dataset(data_vars, coords=coords, attrs=ds_attrs)
     validate_partition(ds)
     return ds
+
+
+def _observer(frame: str) -> str:
+    """``frame`` as MSv4's ``observer`` attribute (xstack.frames imports nothing heavy)."""
+    from xstack.frames import msv4_observer
+
+    return msv4_observer(frame)
 
 
 def _fail(where: str, what: str) -> None:

@@ -739,6 +739,20 @@ def _follow(client: Any, futures: list[Any], progress: bool, description: str) -
         bar.close()
 
 
+def spectral_window_frames(path: str) -> list[str]:
+    """The frequency frame of each spectral window (``MEAS_FREQ_REF``, casacore's names;
+    TOPO where the column is missing or undefined), as :mod:`xstack.frames` names them."""
+    import casacore.tables as pt
+
+    from xstack.frames import frame_from_meas_freq_ref
+
+    with msread.CASACORE_LOCK, pt.table(f"{path}/SPECTRAL_WINDOW", ack=False) as tab:
+        if "MEAS_FREQ_REF" not in tab.colnames():
+            return ["TOPO"] * tab.nrows()
+        return [frame_from_meas_freq_ref(tab.getcell("MEAS_FREQ_REF", k))
+                for k in range(tab.nrows())]
+
+
 def release_free_memory() -> None:
     """Give the C heap's free memory back to the operating system (glibc only; else nothing).
 
@@ -821,6 +835,7 @@ def convert_ms(
     try:
         column, vis_dtype = check_datacolumn(path, datacolumn)
         meta = msread.read_meta(path)
+        spw_frames = spectral_window_frames(path)
         index = msread.read_index(path, INDEX_COLUMNS)
         if index["TIME"].size == 0:
             raise XstackError(f"{ms}: the MeasurementSet has no rows")
@@ -854,7 +869,8 @@ def convert_ms(
                 phase_center=tuple(meta.phase_centers[plan.field_id]),
                 field_name=meta.field_names[plan.field_id], field_id=plan.field_id,
                 spectral_window_id=spw, telescope_name=meta.telescope_name,
-                integration_time=plan.interval, attrs=attrs)
+                integration_time=plan.interval, attrs=attrs,
+                frequency_frame=spw_frames[spw] if spw < len(spw_frames) else "TOPO")
             ds = ds.assign_coords(scan_number=("time", plan.scan_of_time))
             ds = ds.assign(
                 TIME_CENTROID=(("time", "baseline_id"), arrays["TIME_CENTROID"],

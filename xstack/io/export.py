@@ -20,6 +20,7 @@ from xstack._atomic import atomic_output, check_output
 from xstack._fs import is_url
 from xstack._progress import progress_iter
 from xstack.errors import XstackError
+from xstack.frames import frequency_frame, meas_freq_ref
 from xstack.io._mswrite import create_ms, write_subtables
 from xstack.schema import iter_partitions, open_store
 
@@ -82,6 +83,7 @@ def _metadata(parts: list[tuple[str, Any]], where: str) -> dict[str, Any]:
     positions = np.asarray(first["ANTENNA_POSITION"].values, dtype=np.float64)
     dish = np.asarray(first["DISH_DIAMETER"].values, dtype=np.float64)
     spws: dict[int, tuple[np.ndarray, np.ndarray, str]] = {}
+    spw_frames: dict[int, int] = {}  # MEAS_FREQ_REF of each window
     fields: dict[int, tuple[str, tuple[float, float]]] = {}
     pols: list[tuple[str, ...]] = []
     ids = []
@@ -97,6 +99,7 @@ def _metadata(parts: list[tuple[str, Any]], where: str) -> dict[str, Any]:
         if sid in spws and not (spws[sid][0].shape == freq.shape and np.array_equal(spws[sid][0], freq)):
             sid = max(spws) + 1  # same id, other frequencies (e.g. merged stores): a new window
         spws.setdefault(sid, (freq, width, str(ds.attrs.get("spectral_window_name", f"SPW{sid}"))))
+        spw_frames.setdefault(sid, meas_freq_ref(frequency_frame(ds)))
         fid = int(ds.attrs["field_id"])
         center = (float(ds.attrs["phase_center"][0]), float(ds.attrs["phase_center"][1]))
         if fid in fields and fields[fid][1] != center:
@@ -112,6 +115,7 @@ def _metadata(parts: list[tuple[str, Any]], where: str) -> dict[str, Any]:
             t_min, t_max = min(t_min, t.min() - half), max(t_max, t.max() + half)
     ddids: list[tuple[int, int]] = sorted({(s, p) for s, _, p in ids})
     return {"antenna_names": ant_names, "positions": positions, "dish": dish, "spws": spws,
+            "spw_frames": spw_frames,
             "fields": fields, "pols": pols, "ddids": ddids,
             "part_ids": [(ddids.index((s, p)), f) for s, f, p in ids],
             "time_range": (float(t_min), float(t_max)) if np.isfinite(t_min) else (0.0, 0.0)}
@@ -260,8 +264,9 @@ def export_ms(
     for sid, pid in meta["ddids"]:
         shapes.append((meta["spws"][sid][0].size, len(meta["pols"][pid])))
     first_spw = meta["spws"][min(meta["spws"])]
-    spw_rows = [{"chan_freq": f, "chan_width": w, "name": n}
-                for f, w, n in _fill_gaps(meta["spws"], (*first_spw[:2], "unused"))]
+    spw_rows = [{"chan_freq": f, "chan_width": w, "name": n, "meas_freq_ref": ref}
+                for (f, w, n), ref in zip(_fill_gaps(meta["spws"], (*first_spw[:2], "unused")),
+                                          _fill_gaps(meta["spw_frames"], 5))]
     first_field = meta["fields"][min(meta["fields"])]
     field_rows = [{"name": n, "phase_center": c}
                   for n, c in _fill_gaps(meta["fields"], ("unused", first_field[1]))]

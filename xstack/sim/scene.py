@@ -139,6 +139,15 @@ class Spectral:
     bandwidth: float = 250e6
     channels: int = 10
     polarizations: list[str] = field(default_factory=lambda: ["RR", "LL"])
+    #: frame of the channel frequencies, recorded in the store (:mod:`xstack.frames`):
+    #: ``TOPO`` (not given: a store that does not say, read as TOPO), ``LSRK``, ``BARY``...
+    frame: str | None = None
+    #: rest frequency of the populations' lines: a name of :data:`xstack.spectral.LINES`
+    #: (``HI``, ``CO(1-0)``...) or a frequency (Hz, or a string with units)
+    line: Any = None
+    #: frame the lines' centres are fixed in: ``lsrk`` (default) or ``bary``; with channels
+    #: in another frame the lines move over the track (:func:`xstack.frames.frame_ratio`)
+    line_frame: str | None = None
 
     def frequencies(self) -> tuple[np.ndarray, np.ndarray]:
         """Channel center frequencies and widths, Hz."""
@@ -186,8 +195,32 @@ class Shape:
 
 
 @dataclass
+class Line:
+    """A spectral line on every source of a population (``docs/sim.md``).
+
+    The line's rest frequency and frame are the scene's (``spectral.line``,
+    ``spectral.line_frame``); each source has an observed centre nu_c = nu_rest / (1 + z) in
+    that frame, from ``z`` ([z] fixed, [min, max] uniform), ``z_values`` (one per source) or
+    ``centre_hz`` (observed centres, one per source). ``flux_jy_kms`` (integrated flux
+    F = integral of S dv, v = c (nu_c - nu) / nu_c) and ``fwhm_kms`` are [value] or
+    [min, max] (uniform). ``profile``: ``gaussian``, or ``double`` (a double horn: two
+    Gaussians of F/2 each, of FWHM fwhm/3, centred at +-fwhm/3, so that the sum's full width
+    at half maximum is close to ``fwhm_kms``). Each channel holds the profile averaged over
+    the channel's width.
+    """
+
+    profile: str = "gaussian"
+    flux_jy_kms: list[float] = field(default_factory=lambda: [1.0])
+    fwhm_kms: list[float] = field(default_factory=lambda: [200.0])
+    z: list[float] = field(default_factory=list)
+    z_values: list[float] = field(default_factory=list)
+    centre_hz: list[float] = field(default_factory=list)
+
+
+@dataclass
 class Population:
-    """A sky population: ``count`` sources with a flux distribution, positions and shape."""
+    """A sky population: ``count`` sources with a flux distribution, positions and shape,
+    and optionally a spectral ``line`` (:class:`Line`; ``flux`` is then the continuum)."""
 
     name: str = "targets"
     count: int = 1
@@ -196,6 +229,7 @@ class Population:
     shape: Shape = field(default_factory=Shape)
     #: scaling rule: populations of at most this many sources keep their count at any scale
     keep_count_below: int = 10
+    line: Line | None = None
 
 
 @dataclass
@@ -417,6 +451,7 @@ def validate_scene(scene: Scene) -> Scene:
             or len(set(s.polarizations)) != len(s.polarizations):
         raise XstackError(f"spectral.polarizations: need distinct names from "
                           f"{sorted(KNOWN_POLS)} (got {s.polarizations})")
+    _validate_lines(scene)
     p = scene.pointings
     if p.mode not in POINTING_MODES:
         raise XstackError(f"pointings.mode: unknown mode {p.mode!r} ({', '.join(POINTING_MODES)})")
@@ -486,6 +521,65 @@ def validate_scene(scene: Scene) -> Scene:
             raise XstackError(f"{where}.positions.kind: the population that defines the "
                               "pointings cannot be placed around them")
     return scene
+
+
+LINE_PROFILES = ("gaussian", "double")
+
+
+def _validate_lines(scene: Scene) -> None:
+    """The spectral-line settings (only looked at when given: continuum scenes skip this)."""
+    from xstack.errors import OptionError
+    from xstack.frames import DOPPLER_FRAMES, frame_name
+
+    s = scene.spectral
+    if s.frame is not None:
+        try:
+            name = frame_name(s.frame)
+        except OptionError:
+            name = ""
+        if name not in DOPPLER_FRAMES:
+            raise XstackError(f"spectral.frame: {s.frame!r} is not one of "
+                              f"{', '.join(DOPPLER_FRAMES)}")
+    if s.line_frame is not None and str(s.line_frame).lower() not in _vocabulary.LINE_FRAMES:
+        raise XstackError(f"spectral.line_frame: {s.line_frame!r} is not one of "
+                          f"{', '.join(_vocabulary.LINE_FRAMES)}")
+    lines = [(i, q) for i, q in enumerate(scene.populations) if q.line is not None]
+    if s.line is not None or lines:
+        from xstack.spectral import rest_frequency
+
+        if s.line is None:
+            raise XstackError(f"spectral.line: populations[{lines[0][0]}] has a line: give "
+                              "its rest frequency (a name such as HI or CO(1-0), or Hz)")
+        try:
+            rest_frequency(s.line)
+        except OptionError as exc:
+            raise XstackError(f"spectral.line: {exc}") from None
+    for i, q in lines:
+        where = f"populations[{i}].line"
+        ln = q.line
+        assert ln is not None
+        if ln.profile not in LINE_PROFILES:
+            raise XstackError(f"{where}.profile: unknown {ln.profile!r} "
+                              f"({', '.join(LINE_PROFILES)})")
+        for key, low in (("flux_jy_kms", 0.0), ("fwhm_kms", None)):
+            v = getattr(ln, key)
+            if len(v) not in (1, 2) or v[0] > v[-1] or not all(np.isfinite(v)) \
+                    or (low is not None and min(v) < low) or (low is None and min(v) <= 0):
+                raise XstackError(f"{where}.{key}: need [value] or [min, max], "
+                                  f"{'>= 0' if low is not None else '> 0'}")
+        given = [k for k in ("z", "z_values", "centre_hz") if getattr(ln, k)]
+        if len(given) != 1:
+            raise XstackError(f"{where}: give exactly one of z, z_values or centre_hz")
+        if ln.z and (len(ln.z) not in (1, 2) or ln.z[0] > ln.z[-1] or min(ln.z) <= -1):
+            raise XstackError(f"{where}.z: need [z] or [min, max] with z > -1")
+        for key in ("z_values", "centre_hz"):
+            v = getattr(ln, key)
+            if v and len(v) < q.count:
+                raise XstackError(f"{where}.{key}: need one value per source ({q.count})")
+        if ln.z_values and min(ln.z_values) <= -1:
+            raise XstackError(f"{where}.z_values: need z > -1")
+        if ln.centre_hz and min(ln.centre_hz) <= 0:
+            raise XstackError(f"{where}.centre_hz: need frequencies > 0 Hz")
 
 
 def _angle_pair(pair: list[Any], where: str) -> tuple[float, float]:

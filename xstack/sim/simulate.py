@@ -108,6 +108,7 @@ class _Plan:
     beam: PrimaryBeam | None  # None: no primary-beam step
     sigma: np.ndarray | None  # (nbl, nchan) Jy, None: no noise
     steps: set[str]
+    lines: dict[str, Any] | None = None  # the line sources (_line_sources), None: no lines
 
 
 def _seed_rng(seed: int, *key: int) -> np.random.Generator:
@@ -220,8 +221,33 @@ def _draw_population(i: int, scene: Scene, seed: int, pointings: np.ndarray | No
         fwhm = np.full(n, f[0]) if len(f) == 1 or f[0] == f[-1] else rng.uniform(f[0], f[-1], n)
     else:
         fwhm = np.zeros(n)
-    return {"ra": np.asarray(ra, float), "dec": np.asarray(dec, float), "flux": flux,
-            "fwhm_arcsec": fwhm}
+    out = {"ra": np.asarray(ra, float), "dec": np.asarray(dec, float), "flux": flux,
+           "fwhm_arcsec": fwhm}
+    if q.line is not None:
+        out.update(_draw_line(q, rng, scene))
+    return out
+
+
+def _draw_line(q: Any, rng: np.random.Generator, scene: Scene) -> dict[str, np.ndarray]:
+    """Line parameters of a population's sources (drawn after everything else)."""
+    from xstack.spectral import observed_line_centre, rest_frequency
+
+    ln, n = q.line, q.count
+
+    def value(pair: list[float]) -> np.ndarray:
+        return (np.full(n, float(pair[0])) if len(pair) == 1 or pair[0] == pair[-1]
+                else rng.uniform(pair[0], pair[-1], n))
+
+    line_flux, line_fwhm = value(ln.flux_jy_kms), value(ln.fwhm_kms)
+    rest = rest_frequency(scene.spectral.line)
+    if ln.centre_hz:
+        centre = np.asarray(ln.centre_hz[:n], float)
+        z = rest / centre - 1.0
+    else:
+        z = value(ln.z) if ln.z else np.asarray(ln.z_values[:n], float)
+        centre = observed_line_centre(rest, z)
+    return {"z": np.asarray(z, float), "line_flux": line_flux, "line_fwhm": line_fwhm,
+            "line_centre": np.asarray(centre, float)}
 
 
 def _times(scene: Scene, n_pointings: int, ra0: float, longitude: float) -> list[np.ndarray]:
@@ -300,11 +326,22 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
         if q.shape.kind == "gaussian":
             cols["fwhm_arcsec"] = d["fwhm_arcsec"]
         cols["pointing"] = best.astype(np.int64)
+        if q.line is not None:
+            cols.update({"z": d["z"], "freq": d["line_centre"],
+                         "line_flux_jy_kms": d["line_flux"], "line_fwhm_kms": d["line_fwhm"]})
         t = Table(cols)
         t["ra"].unit, t["dec"].unit, t["flux"].unit = "deg", "deg", "Jy"
         if "fwhm_arcsec" in t.colnames:
             t["fwhm_arcsec"].unit = "arcsec"
         t.meta.update({"population": q.name, "flux_distribution": q.flux.kind})
+        if q.line is not None:
+            from xstack.spectral import rest_frequency
+
+            t["freq"].unit, t["line_flux_jy_kms"].unit = "Hz", "Jy km / s"
+            t["line_fwhm_kms"].unit = "km / s"
+            t.meta.update({"line_rest_frequency_hz": rest_frequency(scene.spectral.line),
+                           "line_frame": str(scene.spectral.line_frame or "lsrk").upper(),
+                           "line_profile": q.line.profile})
         catalogs[q.name] = t
 
     def cat(key: str) -> np.ndarray:
@@ -345,6 +382,22 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
                 steps.add("bandwidth_smearing")
             if e.time_smearing:
                 steps.add("time_smearing")
+    lines = _line_sources(scene, drawn, array)
+    if lines is not None:
+        steps.add("line")
+        if beam is not None:
+            steps.add("primary_beam")
+        if e.w_term:
+            steps.add("w_term")
+        if np.any(lines["fwhm"] > 0):
+            steps.add("extent")
+        if len(pointings) > 1 or np.any((lines["ra"] != pointings[0, 0])
+                                        | (lines["dec"] != pointings[0, 1])):
+            steps.add("phase")
+            if e.bandwidth_smearing:
+                steps.add("bandwidth_smearing")
+            if e.time_smearing:
+                steps.add("time_smearing")
     if sigma is not None:
         steps.add("noise")
     if e.flagging is not None:
@@ -353,7 +406,38 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
         if e.flagging.shadowing:
             steps.add("flag_shadow")
     return _Plan(scene, array, freq, width, list(scene.spectral.polarizations), pointings,
-                 times, catalogs, ra, dec, flux, fwhm, beam, sigma, steps)
+                 times, catalogs, ra, dec, flux, fwhm, beam, sigma, steps, lines)
+
+
+def _line_sources(scene: Scene, drawn: dict[int, dict[str, np.ndarray]],
+                  array: arr.AntennaArray) -> dict[str, Any] | None:
+    """The sources with a line (non-zero line flux), or None when the scene has none."""
+    from xstack.frames import frame_name
+
+    keys = ("ra", "dec", "fwhm_arcsec", "line_centre", "line_flux", "line_fwhm")
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in (*keys, "profile")}
+    for i, q in enumerate(scene.populations):
+        if q.line is None:
+            continue
+        d = drawn[i]
+        for k in keys:
+            parts[k].append(np.asarray(d[k], float))
+        parts["profile"].append(np.full(d["ra"].size, q.line.profile, dtype=object))
+    if not parts["ra"]:
+        return None
+    cat = {k: np.concatenate(v) for k, v in parts.items()}
+    keep = cat["line_flux"] != 0
+    if not keep.any():
+        return None
+    s = scene.spectral
+    return {"ra": cat["ra"][keep], "dec": cat["dec"][keep],
+            "fwhm": cat["fwhm_arcsec"][keep] * ARCSEC, "centre": cat["line_centre"][keep],
+            "flux": cat["line_flux"][keep], "fwhm_kms": cat["line_fwhm"][keep],
+            "profile": cat["profile"][keep],
+            "channel_frame": frame_name(s.frame) if s.frame is not None else "TOPO",
+            # the array centre, as the line stack (xstack.uvstack.line) takes it from a store
+            "line_frame": frame_name(s.line_frame or "lsrk"),
+            "site": np.asarray(array.positions, np.float64).mean(axis=0)}
 
 
 def _noise_sigma(n: Any, array: arr.AntennaArray, width: np.ndarray, tau: float) -> np.ndarray:
@@ -391,6 +475,8 @@ def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None
             channel_width=ctx["smear_width"], integration_time=ctx["smear_time"],
             dec0=ctx["center"][1])
         out[..., ctx["parallel"]] = model[..., None]
+    if ctx.get("lines") is not None:
+        _add_lines(out, ctx, t0, t1, b0, b1)
     sigma = ctx["sigma"]
     if sigma is not None:
         kernels._count("noise")
@@ -400,6 +486,114 @@ def _vis_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None
                 (nbl_all, nchan, npol, 2))[b0:b1]
             out[k] += sigma[b0:b1, :, None] * (z[..., 0] + 1j * z[..., 1])
     return out.astype(ctx["dtype"], copy=False)
+
+
+def _add_lines(out: np.ndarray, ctx: dict[str, Any], t0: int, t1: int, b0: int, b1: int
+               ) -> None:
+    """Add the line sources' visibilities to ``out`` (time, baseline, channel, pol).
+
+    Each group of sources is evaluated on the channels its lines reach only. The profile of
+    a channel is its average over the channel's edges converted to the lines' frame: once
+    for the block when the channels are in that frame, per integration otherwise (the
+    Doppler track of TOPO channels).
+    """
+    ln = ctx["lines"]
+    kernels._count("line")
+    a1, a2 = ctx["a1"][b0:b1], ctx["a2"][b0:b1]
+    ant = arr.antenna_uvw(ctx["positions"], ctx["times"][t0:t1], *ctx["center"])
+    freq, lo, hi = ctx["freq"], ln["lo"], ln["hi"]
+    par = ctx["parallel"]
+    for c0, c1, idx, profile in ln["groups"]:
+        sub = slice(c0, c1)
+        att = ln["att"][idx, sub] if ln["att"] is not None else 1.0
+
+        def model(amp: np.ndarray, uvw: np.ndarray, idx: np.ndarray = idx,
+                  sub: slice = sub) -> np.ndarray:
+            return kernels.model_visibilities_antenna(
+                uvw, a1, a2, freq[sub], ln["l"][idx], ln["m"][idx],
+                ln["nm1"][idx] if ln["nm1"] is not None else None, np.ones(idx.size), amp,
+                ln["fwhm"][idx] if ln["extended"][idx].any() else None, parallel=False,
+                channel_width=(ctx["smear_width"][sub] if ctx["smear_width"] is not None
+                               else None),
+                integration_time=ctx["smear_time"], dec0=ctx["center"][1])
+
+        args = (ln["centre"][idx], ln["flux"][idx], ln["fwhm_kms"][idx], profile)
+        if ln["ratio"] is None:
+            amp = kernels.line_channel_flux(lo[sub], hi[sub], *args) * att
+            out[:, :, sub, :][..., par] += model(amp, ant)[..., None]
+            continue
+        for k in range(t1 - t0):
+            r = ln["ratio"][t0 + k]
+            amp = kernels.line_channel_flux(r * lo[sub], r * hi[sub], *args) * att
+            out[k:k + 1, :, sub, :][..., par] += model(amp, ant[k:k + 1])[..., None]
+
+
+def _line_context(plan: _Plan, p: int, center: tuple[float, float],
+                  times: np.ndarray) -> dict[str, Any] | None:
+    """What the chunks of pointing ``p`` need to add the line sources (None: nothing)."""
+    from xstack.frames import frame_ratio
+    from xstack.spectral import SPEED_OF_LIGHT_KMS
+
+    ln = plan.lines
+    if ln is None:
+        return None
+    scene = plan.scene
+    l, m, _, nm1 = radec_to_lmn(ln["ra"], ln["dec"], *center)
+    keep = np.ones(l.size, bool)
+    att = None
+    if plan.beam is not None:
+        sep = angular_separation(ln["ra"], ln["dec"], *center)
+        att = plan.beam(sep[:, None], plan.freq[None, :])
+        keep &= att.max(axis=1, initial=0.0) > 0
+    ratio = None
+    if ln["channel_frame"] != ln["line_frame"]:
+        # the pointing's direction for every source in it, as a correlator's (and CASA's)
+        # frame conversion of a field uses its phase center
+        ratio = frame_ratio(times, np.degrees(center[0]), np.degrees(center[1]), ln["site"],
+                            to_frame=ln["line_frame"], from_frame=ln["channel_frame"])
+    r_lo, r_hi = ((1.0, 1.0) if ratio is None or ratio.size == 0
+                  else (float(ratio.min()), float(ratio.max())))
+    lo = plan.freq - 0.5 * plan.width
+    hi = plan.freq + 0.5 * plan.width
+    # channels each line reaches (in the channel frame, over the whole track)
+    groups = []
+    for profile in sorted(set(ln["profile"].tolist())):
+        half = kernels.line_half_width_kms(ln["fwhm_kms"], profile) / SPEED_OF_LIGHT_KMS
+        f_lo = ln["centre"] * (1.0 - half) / r_hi
+        f_hi = ln["centre"] * (1.0 + half) / r_lo
+        c0 = np.searchsorted(hi, f_lo, side="right")
+        c1 = np.searchsorted(lo, f_hi, side="left")
+        mine = np.flatnonzero(keep & (ln["profile"] == profile) & (c1 > c0))
+        groups += _channel_groups(mine, c0, c1, profile)
+    if not groups:
+        return None
+    return {"l": l, "m": m, "nm1": nm1 if scene.effects.w_term else None,
+            "att": np.ascontiguousarray(att) if att is not None else None,
+            "fwhm": ln["fwhm"], "extended": ln["fwhm"] > 0, "centre": ln["centre"],
+            "flux": ln["flux"], "fwhm_kms": ln["fwhm_kms"], "ratio": ratio,
+            "lo": lo, "hi": hi, "groups": groups}
+
+
+def _channel_groups(idx: np.ndarray, c0: np.ndarray, c1: np.ndarray, profile: str,
+                    min_width: int = 64) -> list[tuple[int, int, np.ndarray, str]]:
+    """Sources ``idx`` (channel ranges [c0, c1)) in groups sharing one channel window of at
+    most max(min_width, 2 x the widest range) channels: a kernel call per group does at most
+    twice the channels a call per source would, with far fewer calls."""
+    out: list[tuple[int, int, np.ndarray, str]] = []
+    if idx.size == 0:
+        return out
+    order = idx[np.argsort(c0[idx], kind="stable")]
+    width = max(min_width, 2 * int((c1[idx] - c0[idx]).max()))
+    start = 0
+    while start < order.size:
+        w0 = int(c0[order[start]])
+        stop = start
+        while stop < order.size and c1[order[stop]] <= w0 + width:
+            stop += 1
+        members = order[start:stop]
+        out.append((w0, int(c1[members].max()), members, profile))
+        start = stop
+    return out
 
 
 def _uvw_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = None) -> np.ndarray:
@@ -458,6 +652,8 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         "smear_time": (float(scene.observation.integration) if scene.effects.time_smearing
                        else None),
     }
+    if plan.lines is not None:
+        ctx["lines"] = _line_context(plan, p, center, times)
     tc = scene.time_chunk or max(1, CHUNK_BYTES // max(1, nbl * nchan * npol * dtype.itemsize))
     tc = min(tc, nt)
     bc = min(scene.baseline_chunk or nbl, nbl)
@@ -494,7 +690,8 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
                                   else 0.0),
                # which smearing the data carry (uvstack's smearing="auto" reads this)
                "smearing": {"bandwidth": bool(scene.effects.bandwidth_smearing),
-                            "time": bool(scene.effects.time_smearing)}})
+                            "time": bool(scene.effects.time_smearing)}},
+        frequency_frame=scene.spectral.frame)
     return ds
 
 

@@ -15,8 +15,10 @@ import subprocess
 import sys
 import uuid
 
+import fsspec
 import numpy as np
 import pytest
+from fsspec.implementations.memory import MemoryFileSystem
 
 import xstack
 from xstack.errors import OutputExistsError, SchemaError, XstackError
@@ -301,16 +303,21 @@ def test_file_url_is_a_path(ms, local, tmp_path):
         convert_ms(path, url)
 
 
-def test_unknown_protocol_is_one_line():
+def test_unknown_protocol_is_one_line(ms, monkeypatch, tmp_path):
     with pytest.raises(XstackError) as err:
         open_store("nosuchprotocol://bucket/a.zarr")
     text = str(err.value)
     assert "nosuchprotocol" in text and "\n" not in text
-    try:
-        import gcsfs  # noqa: F401
-    except ImportError:
-        with pytest.raises(XstackError, match=r"gs:// URLs need the package gcsfs \(pip install gcsfs\)"):
-            open_store("gs://bucket/a.zarr")
+    # gs:// without gcsfs (made unimportable if it is installed), as input and as output
+    monkeypatch.setitem(sys.modules, "gcsfs", None)
+    monkeypatch.delitem(sys.modules["fsspec.registry"]._registry, "gs", raising=False)
+    need = r"^gs://bucket/a\.zarr: gs:// URLs need the package gcsfs \(pip install gcsfs\)$"
+    for call in (lambda: open_store("gs://bucket/a.zarr"),
+                 lambda: convert_ms(ms[0], "gs://bucket/a.zarr"),
+                 lambda: xstack.stack_uv(tmp_path / "nothing.zarr", ms[1],
+                                         out="gs://bucket/a.zarr", compute=False)):
+        with pytest.raises(XstackError, match=need):
+            call()
 
 
 def test_chunk_writer_only_for_local_stores(tmp_path):
@@ -409,3 +416,87 @@ def test_stack_s3_on_a_local_cluster(s3, s3_store, ms, local):
         res = xstack.stack_uv(s3_store, ms[1], out=url)
     assert res.flux_jy == pytest.approx(ref.flux_jy, rel=1e-12, abs=0)
     _same(open_store(url), open_store(ref_out))
+
+
+# --------------------------------------------------------------------------- any protocol
+class _NoRenameFS(MemoryFileSystem):
+    """A fake object store under its own protocol: a MemoryFileSystem (own storage) whose
+    moves and renames fail, as on an object store, and that records the files written, in
+    order. xstack knows nothing of it: no s3- or memory-specific code can apply."""
+
+    protocol = ("xstacktest",)
+    store: dict = {}  # noqa: RUF012 - fsspec's own layout: class-level storage
+    pseudo_dirs = [""]  # noqa: RUF012
+    written: list = []  # noqa: RUF012
+
+    @classmethod
+    def _strip_protocol(cls, path):
+        return super()._strip_protocol(str(path).removeprefix("xstacktest://"))
+
+    def mv(self, *args, **kwargs):
+        raise NotImplementedError("xstacktest:// has no rename")
+
+    rename = move = mv
+
+    def _open(self, path, mode="rb", *args, **kwargs):
+        # every write (pipe_file too) opens here; the file is visible from the open on
+        f = super()._open(path, mode, *args, **kwargs)
+        if "w" in mode or "x" in mode:
+            self.written.append((self._strip_protocol(path), f))
+        return f
+
+
+@pytest.fixture
+def xstacktest():
+    fsspec.register_implementation("xstacktest", _NoRenameFS, clobber=True)
+    _NoRenameFS.clear_instance_cache()
+    _NoRenameFS.written.clear()
+    try:
+        yield _NoRenameFS
+    finally:
+        _NoRenameFS.store.clear()
+        _NoRenameFS.pseudo_dirs[:] = [""]
+        _NoRenameFS.clear_instance_cache()
+        # fsspec has no public unregister
+        sys.modules["fsspec.registry"]._registry.pop("xstacktest", None)
+
+
+def _root_flag(data) -> bool | None:
+    """The completion flag in a root ``zarr.json`` (a written MemoryFile)."""
+    return json.loads(data.getvalue()).get("attributes", {}).get("xstack_complete")
+
+
+@pytest.mark.parametrize("lazy", [False, True])
+def test_any_fsspec_protocol(xstacktest, ms, local, lazy):
+    """convert -> uvstack -> open_store through a protocol xstack has never heard of, with no
+    rename: the same data and flux as on the local disk, each store's completion flag its
+    very last write, nothing else left under the URL."""
+    path, pos = ms
+    ref_store, ref, ref_out = local
+    base = "xstacktest://bucket/run"
+    store = convert_ms(path, f"{base}/in.zarr", chunks={"time": 5})
+    assert store == f"{base}/in.zarr"
+    _same(open_store(store), open_store(ref_store))
+    xstacktest.written.clear()
+    if lazy:
+        pending = xstack.stack_uv(store, pos, out=f"{base}/out.zarr", compute=False)
+        with pytest.raises(SchemaError, match="incomplete store"):
+            open_store(f"{base}/out.zarr")
+        (res,) = xstack.compute(pending)
+    else:
+        res = xstack.stack_uv(store, pos, out=f"{base}/out.zarr")
+    assert res.flux_jy == ref.flux_jy and res.flux_err_jy == ref.flux_err_jy
+    stacked = open_store(f"{base}/out.zarr")
+    assert stacked.attrs["xstack_complete"] is True
+    _same(stacked, open_store(ref_out))
+    # the completion flag: in the last object written, and in no root written before it
+    root = "/bucket/run/out.zarr/zarr.json"
+    writes = [(p, d) for p, d in xstacktest.written if p.startswith("/bucket/run/out.zarr")]
+    assert writes and writes[-1][0] == root and _root_flag(writes[-1][1]) is True
+    assert all(_root_flag(d) is not True for p, d in writes[:-1] if p == root)
+    assert any("/VISIBILITY/c/" in p for p, _ in writes)
+    fs = xstacktest()
+    assert sorted(p.rsplit("/", 1)[-1] for p in fs.ls("/bucket/run", detail=False)) == \
+        ["in.zarr", "out.zarr"]
+    with pytest.raises(NotImplementedError):  # really no rename
+        fs.mv("/bucket/run/out.zarr", "/bucket/run/moved.zarr", recursive=True)

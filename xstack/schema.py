@@ -817,39 +817,161 @@ def write_store(
 
     from xstack._progress import dask_progress
 
-    root_attrs = new_store_attrs(partitions, kind, attrs)
-    import zarr
-
-    with atomic_store(path, overwrite=overwrite, storage_options=storage_options) as loc:
-        tmp = loc.zarr_store()
-        nodes = partition_nodes(partitions)
-        if loc.local:
-            root = zarr.open_group(tmp, mode="w", zarr_format=3)
-            root.attrs.update(root_attrs)
-        else:  # every array xarray creates costs several requests on an object store
-            write_skeleton(loc, nodes, root_attrs)
-        # stale encodings (chunks of a source store) must not override dask chunks; a
-        # partition's own group is written before its children (mode "w" clears a group)
-        with quiet_zarr_warnings():
-            if loc.local:
-                writes = [ds.drop_encoding().to_zarr(tmp, group=name, mode="w", zarr_format=3,
-                                                     consolidated=False, compute=False)
-                          for name, ds in nodes.items()]
-            else:
-                writes = [_store_lazy(zarr.open_group(tmp, mode="r+", zarr_format=3,
-                                                      use_consolidated=True), nodes)]
-        # an own thread pool, shut down before a failure leaves this block: no task still
-        # running may write into the temporary after atomic_output has removed it
+    writer = StoreWrite(partitions, path, kind=kind, overwrite=overwrite, attrs=attrs,
+                        storage_options=storage_options)
+    try:
+        # an own thread pool, shut down before a failure aborts the write: no task still
+        # running may write into the temporary after it has been removed
         pool = ThreadPoolExecutor(dask.config.get("num_workers", None) or os.cpu_count() or 1)
         try:
             with dask_progress(description, enabled=progress), dask.config.set(pool=pool):
-                results = dask.compute(*writes, *compute_with)
+                results = dask.compute(*writer.graphs, *compute_with)
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
-        # (quiet: a remote store's consolidated metadata are parsed and written again here)
-        with quiet_zarr_warnings():
-            root = zarr.open_group(tmp, mode="r+", zarr_format=3)
-            if final_attrs is not None:
-                root.attrs.update(dict(final_attrs(tuple(results[len(writes):]))))
-        finish_store(loc, consolidated=not loc.local)
-    return output_path(loc if not loc.local else path)
+        extra = None if final_attrs is None else final_attrs(tuple(results[len(writer.graphs):]))
+    except BaseException:
+        writer.abort()
+        raise
+    return writer.finish(extra)
+
+
+class StoreWrite:
+    """A new store written in three steps: begin, the chunk writes, finish (or abort).
+
+    :func:`write_store` is this class run at once; a lazy stage
+    (``stack_uv(..., out=..., compute=False)``) keeps it open while its graph waits to be
+    computed together with others. Creating it (*begin*) validates the partitions and makes
+    the store's skeleton - every group, the root attributes with ``xstack_complete`` false
+    and the numpy-backed variables - at a temporary name beside ``path`` (in place on an
+    object store, :func:`xstack._atomic.atomic_store`); nothing of it opens as a store.
+
+    Parameters
+    ----------
+    partitions, path, kind, overwrite, attrs, storage_options
+        As :func:`write_store`. An existing ``path`` without ``overwrite`` is an
+        :class:`~xstack.errors.OutputExistsError` here, before any work.
+
+    Attributes
+    ----------
+    graphs : list
+        Dask collections (one delayed per node on a local disk, one for all on an object
+        store) that write every chunk of the dask-backed variables when computed; compute
+        them once, then call :meth:`finish`.
+    location : xstack._fs.Location
+        Where the chunks go (the temporary of a local store).
+    """
+
+    def __init__(self, partitions: Mapping[str, xr.Dataset], path: str | os.PathLike, *,
+                 kind: str = "processing_set", overwrite: bool = False,
+                 attrs: Mapping[str, Any] | None = None,
+                 storage_options: Mapping[str, Any] | None = None) -> None:
+        import threading
+
+        import zarr
+
+        root_attrs = new_store_attrs(partitions, kind, attrs)
+        self._path = path
+        self._state = "open"
+        self._lock = threading.Lock()
+        # atomic_store's generator holds the protocol (temporary, rename, removal on error):
+        # entered here, left by finish (normally) or abort (with an exception)
+        self._atomic = atomic_store(path, overwrite=overwrite, storage_options=storage_options)
+        self.location = loc = self._atomic.__enter__()
+        try:
+            tmp = loc.zarr_store()
+            nodes = partition_nodes(partitions)
+            if loc.local:
+                root = zarr.open_group(tmp, mode="w", zarr_format=3)
+                root.attrs.update(root_attrs)
+            else:  # every array xarray creates costs several requests on an object store
+                write_skeleton(loc, nodes, root_attrs)
+            # stale encodings (chunks of a source store) must not override dask chunks; a
+            # partition's own group is written before its children (mode "w" clears a group)
+            with quiet_zarr_warnings():
+                if loc.local:
+                    self.graphs = [ds.drop_encoding().to_zarr(tmp, group=name, mode="w",
+                                                              zarr_format=3, consolidated=False,
+                                                              compute=False)
+                                   for name, ds in nodes.items()]
+                else:
+                    self.graphs = [_store_lazy(zarr.open_group(tmp, mode="r+", zarr_format=3,
+                                                               use_consolidated=True), nodes)]
+        except BaseException:
+            self.abort()
+            raise
+
+    def __getstate__(self) -> dict[str, Any]:
+        # a copy sent elsewhere (a distributed scheduler serialises the whole computation,
+        # finishing function included) cannot finish or abort: only the process that began
+        # the write holds its protocol
+        return {**self.__dict__, "_lock": None, "_atomic": None}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+
+    @property
+    def name(self) -> str:
+        """The output, for messages (its path or URL)."""
+        return str(self._path)
+
+    @property
+    def state(self) -> str:
+        """``"open"`` (chunks may be written), ``"finished"`` or ``"aborted"``."""
+        return self._state
+
+    def _close(self, state: str) -> bool:
+        with self._lock:
+            if self._state != "open":
+                return False
+            self._state = state
+            return True
+
+    def finish(self, attrs: Mapping[str, Any] | None = None) -> Path | str:
+        """Once every chunk is written: store ``attrs`` (e.g. measured numbers) in the root,
+        consolidate, set ``xstack_complete`` and rename into place. Returns the path (the
+        URL of a remote store). Any failure aborts the write.
+
+        Raises
+        ------
+        XstackError
+            The write was finished or aborted already (a store is written once).
+        """
+        import zarr
+
+        if self._atomic is None:  # a copy in another process (a cluster's worker)
+            raise XstackError(f"{self._path}: a store is finished only in the process that "
+                              "began writing it: compute a lazy result that writes a store "
+                              "with xstack.compute() or its .compute() on a cluster, not "
+                              "dask.compute()")
+        if not self._close("finished"):
+            raise XstackError(f"{self._path}: this store write is {self._state} already "
+                              "(a store is written once)")
+        loc = self.location
+        try:
+            # (quiet: a remote store's consolidated metadata are parsed and written again here)
+            if attrs is not None:
+                with quiet_zarr_warnings():
+                    root = zarr.open_group(loc.zarr_store(), mode="r+", zarr_format=3)
+                    root.attrs.update(dict(attrs))
+            finish_store(loc, consolidated=not loc.local)
+        except BaseException as exc:
+            self._atomic.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        self._atomic.__exit__(None, None, None)
+        return output_path(loc if not loc.local else self._path)
+
+    def abort(self) -> None:
+        """Remove what was written (the temporary; on an object store the store in place).
+        Does nothing once finished or aborted, or in a copy in another process. Call it only
+        when no chunk write still runs."""
+        if self._atomic is None or not self._close("aborted"):
+            return
+        exc = XstackError(f"{self._path}: store write aborted")
+        self._atomic.__exit__(XstackError, exc, None)
+
+    def remove_leftovers(self) -> None:
+        """After an abort: remove again what a chunk write still running then may have
+        written since (a worker's task is not stopped by an error elsewhere)."""
+        if self._atomic is not None and self._state == "aborted":
+            with contextlib.suppress(Exception):
+                self.location.remove()

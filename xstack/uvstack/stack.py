@@ -1052,13 +1052,8 @@ def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
 
     def measure(results: tuple[Any, ...]) -> dict[str, Any]:
         done.append(_measure(results[:n_sums], plan, options, stacked))
-        m = done[-1]
-        m.profile = make_profile(results[n_sums:])
-        emp = m.flux_err_empirical_jy
-        return {"uvstack": {"flux_jy": m.flux_jy, "flux_err_jy": m.flux_err_jy,
-                            "flux_err_empirical_jy": emp if np.isfinite(emp) else None,
-                            "n_positions": int(np.count_nonzero(plan.used)),
-                            "n_visibilities": m.n_visibilities, "options": plan.record}}
+        done[-1].profile = make_profile(results[n_sums:])
+        return _store_attrs(done[-1], plan)
 
     try:
         if options.out is None:
@@ -1079,6 +1074,15 @@ def _compute(plan: _StackPlan, options: UvstackOptions) -> _Measured:
             raise
         raise XstackError(f"engine 'nufft': {exc}") from None
     return done[-1]
+
+
+def _store_attrs(m: _Measured, plan: _StackPlan) -> dict[str, Any]:
+    """The root attributes of the written stack: what the flux pass measured."""
+    emp = m.flux_err_empirical_jy
+    return {"uvstack": {"flux_jy": m.flux_jy, "flux_err_jy": m.flux_err_jy,
+                        "flux_err_empirical_jy": emp if np.isfinite(emp) else None,
+                        "n_positions": int(np.count_nonzero(plan.used)),
+                        "n_visibilities": m.n_visibilities, "options": plan.record}}
 
 
 def _measure(results: tuple[Any, ...], plan: _StackPlan, options: UvstackOptions,
@@ -1248,7 +1252,13 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
         ``False``: plan the stack (catalog, weights, beams; no visibility is read) and return
         a :class:`xstack._lazy.LazyResult` whose flux pass runs later, together with other
         lazy results in one pass over shared data: ``xstack.compute(a, b)`` or
-        ``dask.compute(a, b)`` (on the active distributed Client, if any). Not with ``out``.
+        ``dask.compute(a, b)`` (on the active distributed Client, if any). With ``out`` the
+        store is created now (an existing ``out`` without ``overwrite`` is an error here)
+        and written in that pass, each VISIBILITY chunk read once for the store and the
+        flux; it becomes a store only when the result is finished, in the calling process.
+        A failed :func:`xstack.compute`, or dropping the lazy result uncomputed, removes
+        what was written; a second compute of the same result is an error (a store is
+        written once).
 
     Returns
     -------
@@ -1271,9 +1281,6 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
         engine=engine, out=out, overwrite=overwrite, progress=progress,
         antenna_tol_rad=antenna_tol_rad, autocorrelations=autocorrelations, smearing=smearing,
         profile_bins=profile_bins)
-    if not compute and out is not None:
-        raise OptionError("a lazy stack (compute=False) writes no store: stack with "
-                          "compute=True to write out", option="out")
     inputs = _load(data, positions, options)  # the catalog; the data opened lazily
     plan = _plan(inputs, options)  # what enters, with which weight (no visibility read)
     if not compute:
@@ -1282,22 +1289,57 @@ def stack_uv(data: Any, positions: Any, *, weighting: str = "pb", primary_beam: 
     return _assemble(plan, measured, options)
 
 
+def _optimised_now(x: da.Array) -> Any:
+    """A one-chunk ``Delayed`` of the dask array ``x`` with its graph optimised now (under
+    the caller's configuration), not at compute time."""
+    if x.npartitions > 1:
+        x = x.rechunk(x.shape)
+    return x.to_delayed(optimize_graph=True).ravel()[0]
+
+
 def _lazy(plan: _StackPlan, options: UvstackOptions) -> LazyResult:
-    """The flux pass of ``plan`` as a dask collection that finishes into a StackResult."""
+    """The flux pass of ``plan`` as a dask collection that finishes into a StackResult.
+
+    With ``options.out`` the store is begun now (:class:`xstack.schema.StoreWrite`: the
+    temporary with every group, no chunk) and the collection holds its chunk writes beside
+    the flux sums, made by the same task per chunk as the eager write; its finishing, in the
+    calling process, completes the store with the measured numbers."""
     stacked: dict[str, xr.Dataset] = {}
     sums_graph = []
     for p in plan.active:
         ds_out, sums = _stacked_dataset(p, options, plan.center, plan.record, plan.inputs.ra,
-                                        plan.inputs.dec)
+                                        plan.inputs.dec, shared_phasor=options.out is not None)
         stacked[p.name] = ds_out
         sums_graph.append(sums)
 
     profile_graphs, make_profile = _profile_graphs(stacked, options)
     n_sums = len(sums_graph)
+    write = None
+    writes: list[Any] = []
+    if options.out is not None:
+        from xstack.schema import StoreWrite
+
+        # as the eager write (_compute): no low-level fusion, or the task making a stacked
+        # chunk and its sums is folded into both chains and runs twice. xarray's write
+        # optimises its sources now; the sums are optimised now too (to_delayed), so that
+        # the caller's configuration at compute time cannot fuse them
+        with dask.config.set({"optimization.fuse.active": False}):
+            write = StoreWrite(stacked, options.out, kind="stacked", overwrite=options.overwrite)
+            sums_graph = [_optimised_now(x) for x in sums_graph]
+            profile_graphs = [_optimised_now(x) for x in profile_graphs]
+        writes = write.graphs
 
     def finish(results: list[Any]) -> StackResult:
-        measured = _measure(tuple(results[:n_sums]), plan, options, stacked)
-        measured.profile = make_profile(tuple(results[n_sums:]))
+        results = results[len(writes):]
+        try:
+            measured = _measure(tuple(results[:n_sums]), plan, options, stacked)
+            measured.profile = make_profile(tuple(results[n_sums:]))
+            if write is not None:
+                write.finish(_store_attrs(measured, plan))
+        except BaseException:
+            if write is not None:  # every task has run: nothing writes into it any more
+                write.abort()
+            raise
         return _assemble(plan, measured, options)
 
-    return LazyResult([*sums_graph, *profile_graphs], finish, "stack_uv")
+    return LazyResult([*writes, *sums_graph, *profile_graphs], finish, "stack_uv", write=write)

@@ -39,8 +39,8 @@ from xstack.cli._storage import storage_of
 from xstack.errors import XstackError, XstackWarning
 
 #: Sub-commands in the order ``xstack --help`` lists them.
-COMMANDS = ("convert", "export", "simulate", "image", "subtract", "uvstack", "imstack",
-            "fit", "noise", "info", "demo", "reproduce")
+COMMANDS = ("convert", "export", "simulate", "image", "subtract", "uvstack", "linestack",
+            "imstack", "fit", "noise", "info", "demo", "reproduce")
 
 
 def _load(name: str) -> Any | None:

@@ -21,7 +21,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "list of each population beside it as OUT.<population>.ecsv.")
     p.add_argument("scene", nargs="?", help="scene TOML file (or use --preset)")
     p.add_argument("out", nargs="?", help="output store OUT.zarr")
-    p.add_argument("--preset", help="paper-1 ... paper-11 instead of a scene file")
+    p.add_argument("--preset", help="paper-1 ... paper-11 (the paper's data-set types) or a "
+                   "spectral-line preset, hi-stack or co-stack, instead of a scene file")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--scale", type=float, default=1.0,
                    help="0 < F <= 1: shorten the observation and thin large populations "

@@ -76,14 +76,19 @@ _API = {
     "compute": "xstack._lazy:compute",
     "LazyResult": "xstack._lazy:LazyResult",
     "uv_profile": "xstack.uvstack.stack:uv_profile",
+    # spectral-line stacking
+    "stack_lines": "xstack.uvstack.line:stack_lines",
+    "rest_frequency": "xstack.spectral:rest_frequency",
     # imaging and image-stacking
     "make_image": "xstack.imaging.image:make_image",
     "clean": "xstack.imaging.clean:clean",
     "subtract": "xstack.imaging.subtract:subtract",
     "stack_images": "xstack.imstack.stack:stack_images",
+    "stack_line_cube": "xstack.imstack.line:stack_line_cube",
     # measuring
     "fit_uv": "xstack.fit.uvfit:fit_uv",
     "fit_image": "xstack.fit.imfit:fit_image",
+    "fit_line": "xstack.fit.line:fit_line",
     "estimate_noise": "xstack.noise.estimate:estimate_noise",
     # inspecting
     "info": "xstack._info:info",

@@ -352,10 +352,13 @@ def decode_partition(node: xr.DataTree, name: str, *, data_group: str | None = N
         else:
             widths = np.full(ds.sizes["frequency"], np.nan if width is None else width)
         ds = ds.assign_coords(channel_width=("frequency", widths, {"units": "Hz"}))
-    # the internal view keeps the frame (xstack.frames.frequency_frame) in MSv4's spelling
+    # the internal view keeps the frame (xstack.frames.frequency_frame) in MSv4's spelling;
+    # TOPO, the default, is left unsaid so that a partition written without a frame reads back
+    # identical
     internal_freq = {"units": "Hz"}
-    if freq_attrs.get("observer"):
-        internal_freq["observer"] = str(freq_attrs["observer"])
+    observer = str(freq_attrs.get("observer") or "").strip()
+    if observer and observer.upper() != "TOPO":
+        internal_freq["observer"] = observer
     ds = ds.assign_coords(frequency=("frequency", np.asarray(ds["frequency"].values, np.float64),
                                      internal_freq))
     # the internal attributes of the variables MSv4 describes in its own words

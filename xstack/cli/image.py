@@ -53,6 +53,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--pb-cutoff", type=float, default=None,
                    help="mosaic: NaN where no pointing's primary beam reaches this power "
                         f"(default the beam's cutoff, {V.DEFAULT_PB_CUTOFF:g})")
+    p.add_argument("--cube", action="store_true",
+                   help="write a dirty image cube OUT.fits instead: one Stokes I plane per "
+                        "channel (or per --channels N), FREQ axis in the store's frame "
+                        "(SPECSYS), a restoring beam per plane (BEAMS table); no CLEAN, one "
+                        "pointing, no PSF/model/pb files")
+    p.add_argument("--channels", type=int, default=1, metavar="N",
+                   help="with --cube: consecutive channels imaged together per plane "
+                        "(default 1)")
     p.add_argument("--png", action="store_true", help="also write OUT.png (quick-look)")
     p.add_argument("--autocorrelations", action="store_true",
                    help="image autocorrelations too (default: left out; they measure system "
@@ -120,6 +128,10 @@ def run(args: argparse.Namespace) -> int:
 
     if not str(args.out).lower().endswith(".fits"):
         raise XstackError(f"{args.out}: output image name must end in .fits")
+    if args.cube:
+        return _run_cube(args)
+    if args.channels != 1:
+        raise XstackError("--channels needs --cube")
     names = output_names(args.out)
     if not args.png:
         names.pop("png")
@@ -202,4 +214,43 @@ def run(args: argparse.Namespace) -> int:
     detail(f"{count(result.n_visibilities, 'visibility')} from "
            f"{count(len(result.partitions), 'partition')} ({', '.join(result.partitions)}), "
            f"frequency {figure(result.frequency, unit='Hz')}")
+    return 0
+
+
+def _run_cube(args: argparse.Namespace) -> int:
+    """``--cube``: a dirty cube streamed plane by plane to OUT.fits (xstack.imaging.cube)."""
+    from xstack._atomic import check_output
+    from xstack.cli import emit_json
+    from xstack.imaging.cube import make_cube
+
+    for flag, bad in (("--niter", args.niter > 0), ("--mask", args.mask is not None),
+                      ("--png", args.png), ("--pb-cutoff", args.pb_cutoff is not None)):
+        if bad:
+            raise XstackError(f"{flag} does not go with --cube (cubes are dirty images of one "
+                              "pointing)")
+    if args.channels < 1:
+        raise XstackError("--channels must be >= 1")
+    check_output(args.out, args.overwrite)
+    if not path_exists(args.data):
+        raise XstackError(f"{args.data}: no such store")
+    cube = make_cube(with_data_group(args.data, args.data_group), size=args.size,
+                     cell_arcsec=args.cell, channels=args.channels, weighting=args.weighting,
+                     robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
+                     epsilon=args.epsilon, partitions=args.partition,
+                     progress=not args.no_progress, autocorrelations=args.autocorrelations,
+                     out=args.out, overwrite=args.overwrite, keep=False)
+    if args.json:
+        emit_json({**cube.to_dict(), "files": {"image": str(args.out)},
+                   "cell_arcsec": args.cell, "size": [args.size, args.size],
+                   "weighting": args.weighting,
+                   "pb_corrected": bool(cube.header.get("XSPBCOR", False))})
+        return 0
+    from xstack.cli._output import figure
+    from xstack.cli._output import result as say_result
+
+    f = cube.frequency_hz
+    say_result(f"wrote {args.out}: dirty cube of {f.size} planes ({args.channels} channel"
+               f"{'s' if args.channels > 1 else ''} each), {args.size} x {args.size} px of "
+               f"{args.cell:g} arcsec, {figure(f[0], unit='Hz')} to {figure(f[-1], unit='Hz')} "
+               f"({cube.frame}), {args.weighting} weighting")
     return 0

@@ -55,6 +55,24 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "zeroes the central N x N Fourier cells; a uv distance (4500m, "
                         "20klambda; a number with a decimal point is metres) zeroes every cell "
                         "below it")
+    from xstack.cli.linestack import VELOCITY_HELP, line_frequency, velocity_pair
+
+    line = p.add_argument_group(
+        "spectral lines (image cubes)",
+        "with --line-frequency the input is one image cube (xstack image --cube): 3-D stamps "
+        "aligned in velocity about each target's line centre (catalog z or freq), regridded "
+        "by channel overlap; writes OUT.fits (stacked cube, VRAD km/s), OUT_spectrum.ecsv, "
+        "OUT_spectrum.png and OUT_mom0.png; JSON as xstack linestack (docs/linestack.md)")
+    line.add_argument("--line-frequency", type=line_frequency, default=None, metavar="F",
+                      help="rest frequency: a name (HI, CO(1-0), [CII], ...) or 1420.4MHz")
+    line.add_argument("--velocity-resolution", type=_types.velocity_kms, default=20.0,
+                      metavar="V", help=f"velocity bin width (default 20km/s; {VELOCITY_HELP})")
+    line.add_argument("--velocity-range", type=velocity_pair, default=(-600.0, 600.0),
+                      metavar="A,B", help="velocity range about each line centre (default "
+                      f"-600,600km/s; write --velocity-range=-600,600km/s; {VELOCITY_HELP})")
+    line.add_argument("--line-window", type=velocity_pair, default=None, metavar="A,B",
+                      help="velocities the integrated flux and the moment-0 stamp sum over "
+                           "(default: the fitted centre ± FWHM)")
     p.add_argument("--cube-format", choices=V.CUBE_FORMATS, default="zarr",
                    help="format of OUT.cube.* (default zarr)")
     p.add_argument("--no-png", action="store_true", help="do not write OUT.png")
@@ -92,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
     if not out.lower().endswith(".fits"):
         raise XstackError(f"{out}: the output must be a .fits file name (got the arguments in "
                           "the wrong order?)")
+    if args.line_frequency is not None:
+        return _run_line(args, images, catalog, out)
     result = stack_images(images, catalog, stamp_size=args.stamp_size, method=args.method,
                           weighting=args.weighting, subpixel=args.subpixel or False,
                           primary_beam=_one_or_list(args.primary_beam), pbcor=args.pbcor,
@@ -116,4 +136,106 @@ def run(args: argparse.Namespace) -> int:
                    f"{args.weighting}, {summary['subpixel']} alignment)")
         for kind, path in result.outputs.items():
             say_result(f"  wrote {kind}: {path}")
+    return 0
+
+
+def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: str) -> int:
+    """``--line-frequency``: stack a cube's 3-D stamps in velocity (xstack.imstack.line)."""
+    import math
+    import time
+    from pathlib import Path
+
+    import numpy as np
+
+    from xstack._atomic import atomic_output, check_output
+    from xstack.cli import emit_json
+    from xstack.cli._output import warn
+    from xstack.cli.linestack import summary
+    from xstack.fit.line import fit_line, line_spectrum_figure, spectrum_table
+    from xstack.imstack.line import stack_line_cube
+
+    if len(images) != 1:
+        raise XstackError("--line-frequency stacks one image cube: give CUBE.fits CATALOG "
+                          "OUT.fits")
+    for flag, bad in (("--subpixel", args.subpixel), ("--filter", args.filter_lowfreq),
+                      ("--psf", args.psf), ("--image-corrected", args.image_corrected),
+                      ("--pbcor", args.pbcor), ("--skip-outside", args.skip_outside)):
+        if bad:
+            raise XstackError(f"{flag} does not go with --line-frequency")
+    if args.primary_beam and len(args.primary_beam) > 1:
+        raise XstackError("--primary-beam: give it once with --line-frequency")
+    stem = out[:-5]
+    names = {"ecsv": Path(f"{stem}_spectrum.ecsv"), "png": Path(f"{stem}_spectrum.png"),
+             "mom0": Path(f"{stem}_mom0.png")}
+    if args.no_png:
+        names.pop("png")
+        names.pop("mom0")
+    for path in (out, *names.values()):
+        check_output(path, args.overwrite)
+    t0 = time.perf_counter()
+    res = stack_line_cube(images[0], catalog, line_frequency=args.line_frequency,
+                          velocity_resolution=args.velocity_resolution,
+                          velocity_range=args.velocity_range, method=args.method,
+                          weighting=args.weighting, stamp_size=args.stamp_size,
+                          beam_mask_arcsec=args.beam_mask_arcsec,
+                          primary_beam=(args.primary_beam or ["auto"])[0], out=out,
+                          overwrite=args.overwrite)
+    fit = fit_line(res.velocity_kms, res.flux_jy, res.flux_cov_jy2,
+                   velocity_edges_kms=res.velocity_edges_kms, window_kms=args.line_window)
+    if not fit.converged:
+        needs = "" if args.line_window is not None else \
+            "; for an integrated flux give --line-window A,B"
+        warn(f"no line fitted: {fit.message.replace('window_kms', '--line-window')}{needs}")
+    table = spectrum_table(res, fit)
+    with atomic_output(names["ecsv"], overwrite=args.overwrite) as tmp:
+        table.write(str(tmp), format="ascii.ecsv")
+    if not args.no_png:
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        title = (f"image line stack of {res.n_positions} positions ({res.frame.upper()}, "
+                 f"{args.method}, rest {res.rest_frequency_hz / 1e9:.6g} GHz)")
+        fig = line_spectrum_figure(table, title=title)
+        with atomic_output(names["png"], overwrite=args.overwrite) as tmp:
+            fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
+        plt.close(fig)
+        window = fit.window_kms if all(map(math.isfinite, fit.window_kms)) else \
+            (res.velocity_edges_kms[0], res.velocity_edges_kms[-1])
+        mom0 = res.moment0(window)
+        fig, ax = plt.subplots(figsize=(5.5, 5))
+        off = (np.arange(mom0.shape[0]) - mom0.shape[0] // 2) * abs(float(
+            res.header.get("CDELT2", res.header.get("CD2_2", 0.0)))) * 3600.0
+        im = ax.imshow(mom0, origin="lower", cmap="inferno",
+                       extent=(off[0], off[-1], off[0], off[-1]))
+        ax.set_xlabel("offset (arcsec)")
+        ax.set_ylabel("offset (arcsec)")
+        ax.set_title(f"moment 0 over {window[0]:.4g}..{window[1]:.4g} km/s")
+        fig.colorbar(im, ax=ax, label="Jy/beam km/s")
+        with atomic_output(names["mom0"], overwrite=args.overwrite) as tmp:
+            fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
+        plt.close(fig)
+    seconds = time.perf_counter() - t0
+    if args.json:
+        emit_json({**summary(res, fit), "output": str(out),
+                   "spectrum_table": str(names["ecsv"]),
+                   "spectrum_png": str(names["png"]) if "png" in names else None,
+                   "moment0_png": str(names["mom0"]) if "mom0" in names else None,
+                   "seconds": round(seconds, 3)})
+        return 0
+    from xstack.cli._output import count, figure
+    from xstack.cli._output import result as say_result
+
+    if math.isfinite(fit.integrated_flux_jy_kms):
+        w = fit.window_kms
+        value = figure(fit.integrated_flux_jy_kms, fit.integrated_flux_err_jy_kms, "Jy km/s")
+        line = f"line integral {value} over {w[0]:.4g}..{w[1]:.4g} km/s"
+    else:
+        line = "line integral n/a (no line fitted, no --line-window)"
+    if fit.converged:
+        line += (f"; centre {figure(fit.centre_kms, fit.centre_err_kms, 'km/s')}, FWHM "
+                 f"{figure(fit.fwhm_kms, fit.fwhm_err_kms, 'km/s')}")
+    say_result(f"{line}; from {count(res.n_positions, 'position')} ({args.method})")
+    say_result("  wrote " + ", ".join([out, *map(str, names.values())]))
     return 0

@@ -1078,8 +1078,12 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
                partitions: str | Sequence[str] | None = None, nthreads: int = 0,
                progress: bool = False, mosaic_center: tuple[float, float] | None = None,
                pb_cutoff: float | None = None,
-               autocorrelations: bool = False) -> ImageResult:
+               autocorrelations: bool = False, cube: bool = False,
+               channels: int = 1) -> ImageResult | Any:
     """Dirty image and PSF (Stokes I, multi-frequency synthesis) of a store.
+
+    With ``cube=True``: a dirty image cube instead, one plane per ``channels`` channels
+    (:func:`xstack.imaging.cube.make_cube`, returning a ``CubeResult``; one pointing).
 
     Partitions that share a phase center (e.g. several spectral windows of one pointing) are
     imaged jointly. Partitions with different phase centers (a mosaic) give a linear mosaic
@@ -1127,6 +1131,13 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     -------
     ImageResult
     """
+    if cube:
+        from xstack.imaging.cube import make_cube
+
+        return make_cube(data, size=size, cell_arcsec=cell_arcsec, channels=channels,
+                         weighting=weighting, robust=robust, wterm=wterm, pbcor=pbcor,
+                         epsilon=epsilon, partitions=partitions, nthreads=nthreads,
+                         progress=progress, autocorrelations=autocorrelations)
     parts = select_partitions(data, partitions, allow_mosaic=True)
     if len(group_pointings(parts)) > 1:
         return make_mosaic(parts, size=size, cell_arcsec=cell_arcsec, weighting=weighting,

@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 __all__ = ["ImstackOptions", "ImstackResult", "stack_images"]
+_LINE = ["ImLineStackResult", "stack_line_cube"]
 
 
 def __getattr__(name: str) -> Any:
@@ -17,4 +18,8 @@ def __getattr__(name: str) -> Any:
         from xstack.imstack import stack
 
         return getattr(stack, name)
+    if name in _LINE:
+        from xstack.imstack import line
+
+        return getattr(line, name)
     raise AttributeError(f"module 'xstack.imstack' has no attribute {name!r}")

@@ -1,0 +1,170 @@
+"""Dirty image cubes (``xstack image --cube``) and the cube -> line-stack chain (issue 15)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+from _imaging_helpers import PHASE_CENTER, make_sky_partition
+from astropy.io import fits
+from astropy.table import Table
+from astropy.wcs import WCS
+from scipy.special import erf
+
+from xstack.cli import main
+from xstack.imaging.cube import make_cube
+from xstack.imaging.fitsio import celestial_wcs, make_header
+from xstack.imaging.image import make_image
+from xstack.schema import open_store, write_store
+from xstack.spectral import SPEED_OF_LIGHT_KMS as C_KMS
+
+REST = 1420.405751786e6
+NCHAN, F0, DF = 48, 1.3195e9, 0.1e6  # ~22.7 km/s channels, 1090 km/s
+SIZE, CELL = 64, 2.0
+# (pixel x, pixel y, line centre Hz, integral Jy km/s, FWHM km/s): the lines ~540 km/s apart,
+# so neither's dirty sidelobes reach the other's channels (dirty cubes: no CLEAN)
+LINES = [(SIZE // 2 + 6, SIZE // 2 - 4, 1.32068e9, 40.0, 120.0),
+         (SIZE // 2, SIZE // 2, 1.32311e9, 40.0, 120.0)]
+
+
+def channel_flux(nu_c, fint, fwhm):
+    """Channel-averaged flux density (Jy) of a Gaussian line centred on nu_c (plain numpy)."""
+    nu = F0 + DF * np.arange(NCHAN)
+    va = C_KMS * (nu_c - (nu + DF / 2)) / nu_c
+    vb = C_KMS * (nu_c - (nu - DF / 2)) / nu_c
+    s = fwhm / (2 * np.sqrt(2 * np.log(2)))
+    cdf = lambda v: 0.5 * (1 + erf(v / (np.sqrt(2) * s)))  # noqa: E731
+    return fint * (cdf(vb) - cdf(va)) / (vb - va)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cube")
+    ds = make_sky_partition([], n_chan=NCHAN, freq0=F0, chan_width=DF, n_ant=10, n_time=12,
+                            noise=0.0)
+    # the line sources, injected with plain numpy: V = sum f(nu) exp(2 pi i (ul + vm + w(n-1)) nu/c)
+    wcs = celestial_wcs(make_header(SIZE, SIZE, CELL, PHASE_CENTER))
+    uvw = np.asarray(ds["UVW"].values, dtype=np.float64)
+    nu = np.asarray(ds["frequency"].values)
+    vis = np.zeros(ds["VISIBILITY"].shape, dtype=np.complex128)
+    rows = []
+    for px, py, nu_c, fint, fwhm in LINES:
+        ra, dec = np.radians(wcs.pixel_to_world_values(px, py))
+        l = np.cos(dec) * np.sin(ra - PHASE_CENTER[0])
+        m = np.sin(dec) * np.cos(PHASE_CENTER[1]) - np.cos(dec) * np.sin(PHASE_CENTER[1]) * \
+            np.cos(ra - PHASE_CENTER[0])
+        n1 = np.sqrt(1 - l * l - m * m) - 1
+        phase = 2j * np.pi * (uvw[..., 0, None] * l + uvw[..., 1, None] * m
+                              + uvw[..., 2, None] * n1) * nu / 299_792_458.0
+        vis += (channel_flux(nu_c, fint, fwhm) * np.exp(phase))[..., None]
+        rows.append((np.degrees(ra), np.degrees(dec), nu_c / 1e6))
+    ds["VISIBILITY"] = (ds["VISIBILITY"].dims, vis.astype(np.complex64))
+    write_store({"spw0_field0": ds}, d / "line.zarr")
+    cat = Table(rows=rows, names=("ra", "dec", "freq"))
+    cat["freq"].unit = "MHz"
+    cat.write(d / "cat.ecsv")
+    return d
+
+
+def test_planes_are_the_continuum_image_of_their_channels(store):
+    data = open_store(store / "line.zarr")
+    cube = make_cube(data, size=SIZE, cell_arcsec=CELL)
+    assert cube.image.shape == (NCHAN, SIZE, SIZE)
+    ds = open_store(store / "line.zarr")["spw0_field0"].ds
+    for i in (0, 9, 17):
+        one = make_image(ds.isel(frequency=slice(i, i + 1)), size=SIZE, cell_arcsec=CELL)
+        # 1e-12 of the peak, not bit for bit: ducc0's threads may sum in another order
+        np.testing.assert_allclose(cube.image[i], one.image, rtol=0,
+                                   atol=1e-12 * np.abs(one.image).max())
+        # a least-squares fit: rounding of the image moves it by ~1e-10
+        assert tuple(cube.beams[i]) == pytest.approx(one.beam, rel=1e-7)
+    np.testing.assert_allclose(cube.frequency_hz, F0 + DF * np.arange(NCHAN), rtol=1e-15)
+    two = make_image(data, size=SIZE, cell_arcsec=CELL, cube=True, channels=2,
+                     weighting="uniform")
+    one = make_image(ds.isel(frequency=slice(6, 8)), size=SIZE, cell_arcsec=CELL,
+                     weighting="uniform")
+    np.testing.assert_allclose(two.image[3], one.image, rtol=0,
+                               atol=1e-12 * np.abs(one.image).max())
+    assert two.frequency_hz[3] == pytest.approx(F0 + 6.5 * DF, rel=1e-15)
+
+
+def test_fits_cube_spectral_axis_and_beams(store, tmp_path):
+    out = tmp_path / "c.fits"
+    cube = make_cube(str(store / "line.zarr"), size=SIZE, cell_arcsec=CELL, out=out,
+                     keep=True)
+    with fits.open(out) as hdul:
+        h = hdul[0].header
+        assert hdul[0].data.shape == (1, NCHAN, SIZE, SIZE)
+        np.testing.assert_array_equal(hdul[0].data[0], cube.image.astype(np.float32))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            w = WCS(h)
+        assert w.has_spectral and w.wcs.spec == 2
+        freq = w.spectral.pixel_to_world_values(np.arange(NCHAN))
+        np.testing.assert_allclose(freq, F0 + DF * np.arange(NCHAN), rtol=1e-12)
+        assert h["SPECSYS"] == "TOPOCENT" and h["CUNIT3"] == "Hz"
+        beams = hdul["BEAMS"].data
+        assert len(beams) == NCHAN and h["CASAMBM"]
+        np.testing.assert_allclose(beams["BMAJ"], cube.beams[:, 0], rtol=1e-6)
+        assert list(beams["CHAN"]) == list(range(NCHAN))
+
+
+def test_cli_cube_then_line_imstack_recovers_the_line(store, tmp_path, capsys):
+    cube = tmp_path / "cube.fits"
+    assert main(["image", str(store / "line.zarr"), str(cube), "--size", str(SIZE),
+                 "--cell", str(CELL), "--cube", "--no-progress", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["n_planes"] == NCHAN
+    out = tmp_path / "stack.fits"
+    assert main(["imstack", str(cube), str(store / "cat.ecsv"), str(out),
+                 "--line-frequency", "HI", "--velocity-resolution", "30km/s",
+                 "--velocity-range=-270,270km/s", "--weighting", "none",
+                 "--stamp-size", "24", "--json", "--no-progress"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    for key in ("velocity_kms", "flux_jy", "flux_err_jy", "integrated_flux_jy_kms",
+                "integrated_flux_err_jy_kms", "line_fwhm_kms", "line_centre_kms",
+                "n_positions", "n_visibilities", "n_targets_per_bin"):
+        assert key in res
+    assert res["n_positions"] == 2
+    # noiseless: the line, integral over the whole grid
+    flux = np.asarray(res["flux_jy"], dtype=float)
+    integral = np.nansum(flux) * 30.0
+    assert integral == pytest.approx(40.0, rel=1e-3)
+    assert abs(res["line_centre_kms"]) < 2.0
+    assert res["line_fwhm_kms"] == pytest.approx(120.0, rel=0.05)
+    for suffix in ("_spectrum.ecsv", "_spectrum.png", "_mom0.png"):
+        assert (tmp_path / f"stack{suffix}").exists()
+    with fits.open(out) as hdul:
+        assert hdul[0].header["CTYPE3"] == "VRAD"
+
+
+def test_cli_line_bad_inputs(store, tmp_path, capsys):
+    im = tmp_path / "im.fits"
+    assert main(["image", str(store / "line.zarr"), str(im), "--size", str(SIZE),
+                 "--cell", str(CELL), "--no-progress"]) == 0
+    capsys.readouterr()
+    rc = main(["imstack", str(im), str(store / "cat.ecsv"), str(tmp_path / "s.fits"),
+               "--line-frequency", "HI", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "needs an image cube" in err and len(err.splitlines()) == 1
+    cube = tmp_path / "c.fits"
+    assert main(["image", str(store / "line.zarr"), str(cube), "--size", str(SIZE),
+                 "--cell", str(CELL), "--cube", "--channels", "4", "--no-progress"]) == 0
+    Table.read(store / "cat.ecsv")["ra", "dec"].write(tmp_path / "noz.ecsv")
+    capsys.readouterr()
+    rc = main(["imstack", str(cube), str(tmp_path / "noz.ecsv"), str(tmp_path / "s.fits"),
+               "--line-frequency", "HI", "--no-progress"])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "z (redshift) or freq" in err and len(err.splitlines()) == 1
+
+
+def test_cli_cube_option_conflicts(store, tmp_path, capsys):
+    base = ["image", str(store / "line.zarr"), str(tmp_path / "x.fits"), "--size", str(SIZE),
+            "--cell", str(CELL), "--no-progress"]
+    assert main(base + ["--channels", "2"]) != 0
+    assert "--channels needs --cube" in capsys.readouterr().err
+    assert main(base + ["--cube", "--niter", "10"]) != 0
+    assert "does not go with --cube" in capsys.readouterr().err
+    assert not (tmp_path / "x.fits").exists()

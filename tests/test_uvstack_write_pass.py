@@ -93,3 +93,32 @@ def test_profile_bins_is_checked_before_any_data_is_read():
     for bad in (0, -2, 1.5, True, [3.0, 1.0], [[1.0, 2.0]]):
         with pytest.raises(OptionError, match="profile_bins"):
             st.UvstackOptions(profile_bins=bad)
+
+
+def test_stacked_store_codecs_and_phasor_product_bits(tmp_path):
+    """The stacked store uses xstack's store codecs (no compression of the noise-like
+    VISIBILITY, blosc-lz4 for WEIGHT/FLAG/UVW: zarr's default zstd cost ~0.5 s of CPU on a
+    type-6 stack for 10 % less disk), and the in-place phasor product gives the bits of
+    (vis * phasor) in complex128 rounded to the input's complex64."""
+    import json
+
+    ds = make_stack_partition(n_time=6, n_ant=5, n_chan=3, sigma=1.0, seed=2)
+    cat = Table({"ra": [np.degrees(VLA_CENTER[0]) + 0.001], "dec": [np.degrees(VLA_CENTER[1])]})
+    st.stack_uv(xr.DataTree.from_dict({"p": ds.chunk({"time": 3})}), cat,
+                out=tmp_path / "s.zarr")
+    codecs = {}
+    for var in ("VISIBILITY", "WEIGHT", "FLAG", "UVW"):
+        meta = json.loads((tmp_path / "s.zarr" / "p" / var / "zarr.json").read_text())
+        codecs[var] = [c["name"] for c in meta["codecs"]]
+    assert codecs["VISIBILITY"] == ["bytes"]
+    assert all(codecs[v] == ["bytes", "blosc"] for v in ("WEIGHT", "FLAG", "UVW")), codecs
+
+    rng = np.random.default_rng(0)
+    vis = (rng.normal(size=(4, 5, 3, 2)) + 1j * rng.normal(size=(4, 5, 3, 2))).astype(np.complex64)
+    ph = np.exp(1j * rng.uniform(0, 2 * np.pi, size=(4, 5, 3)) * 1e4)
+    got = st._block_apply_phasor(vis, ph)
+    assert got.dtype == np.complex64
+    assert got.tobytes() == (vis.astype(np.complex128) * ph[..., None]).astype(np.complex64).tobytes()
+    out = np.empty((8, 5, 3, 2), np.complex64)
+    st._block_apply_phasor(vis, ph, out=out[2:6])
+    assert out[2:6].tobytes() == got.tobytes()

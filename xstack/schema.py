@@ -307,6 +307,26 @@ def _read_root_attrs(loc: Location) -> dict[str, Any]:
     return doc.get("attributes", {}) or {}
 
 
+#: Compress VISIBILITY? Visibilities are noise-like and shrink by only ~10 %, while compressing
+#: 128 MB chunks costs more than reading them (benchmarks/bench_convert.py), so by default not.
+COMPRESS_VISIBILITY = False
+
+
+def store_encoding() -> dict[str, dict[str, Any]]:
+    """zarr codecs of the big arrays of every store xstack writes (converted, simulated,
+    stacked, subtracted): blosc-lz4 with byte shuffle (as small as zarr's default zstd at a
+    fraction of its CPU time) for weights and UVW, bit shuffle for flags, and no compression
+    for the visibilities unless :data:`COMPRESS_VISIBILITY` (zstd spent ~0.5 s of CPU per
+    190 MB of a stacked type-6 store to save 10 %: benchmarks/bench_uvstack_cli.py)."""
+    from zarr.codecs import BloscCodec
+
+    fast = BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
+    return {"VISIBILITY": {"compressors": fast if COMPRESS_VISIBILITY else None},
+            "WEIGHT": {"compressors": fast},
+            "UVW": {"compressors": fast},
+            "FLAG": {"compressors": BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")}}
+
+
 #: zarr codecs a store may use: plain byte layouts, checksums, compressors and UTF-8 strings.
 #: None of them can run code on decoding; anything else (a pickle or other object codec, a
 #: codec this xstack does not know) makes a store unsafe to open and is refused.
@@ -880,19 +900,21 @@ class StoreWrite:
         try:
             tmp = loc.zarr_store()
             nodes = partition_nodes(partitions)
+            encoding = store_encoding()
             if loc.local:
                 root = zarr.open_group(tmp, mode="w", zarr_format=3)
                 root.attrs.update(root_attrs)
             else:  # every array xarray creates costs several requests on an object store
-                write_skeleton(loc, nodes, root_attrs)
+                write_skeleton(loc, nodes, root_attrs, encoding)
             # stale encodings (chunks of a source store) must not override dask chunks; a
             # partition's own group is written before its children (mode "w" clears a group)
             with quiet_zarr_warnings():
                 if loc.local:
-                    self.graphs = [ds.drop_encoding().to_zarr(tmp, group=name, mode="w",
-                                                              zarr_format=3, consolidated=False,
-                                                              compute=False)
-                                   for name, ds in nodes.items()]
+                    self.graphs = [ds.drop_encoding().to_zarr(
+                        tmp, group=name, mode="w", zarr_format=3, consolidated=False,
+                        compute=False, encoding={k: dict(v) for k, v in encoding.items()
+                                                 if k in ds.variables})
+                        for name, ds in nodes.items()]
                 else:
                     self.graphs = [_store_lazy(zarr.open_group(tmp, mode="r+", zarr_format=3,
                                                                use_consolidated=True), nodes)]

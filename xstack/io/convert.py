@@ -43,28 +43,15 @@ from xstack.errors import XstackError
 from xstack.io import msread
 from xstack.io._store import ChunkFiles, region_store
 from xstack.msv4 import UNIX_EPOCH_MJD_S
-from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name
+from xstack.schema import DEFAULT_CHUNK_BYTES, new_partition, partition_name, store_encoding
 
 #: Visibility columns accepted by ``datacolumn`` (any other complex array column also works).
 DATA_COLUMNS = ("DATA", "CORRECTED_DATA", "MODEL_DATA")
 
 
-#: Compress VISIBILITY? Visibilities are noise-like and shrink by only ~10 %, while compressing
-#: 128 MB chunks costs more than reading them (benchmarks/bench_convert.py), so by default not.
-COMPRESS_VISIBILITY = False
-
-
 def _encoding() -> dict[str, dict[str, Any]]:
-    """zarr codecs of the big arrays: blosc-lz4 with byte shuffle (as small as zarr's default
-    zstd at a fraction of its CPU time) for weights and UVW, bit shuffle for flags, and no
-    compression for the visibilities unless :data:`COMPRESS_VISIBILITY`."""
-    from zarr.codecs import BloscCodec
-
-    fast = BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
-    return {"VISIBILITY": {"compressors": fast if COMPRESS_VISIBILITY else None},
-            "WEIGHT": {"compressors": fast},
-            "UVW": {"compressors": fast},
-            "FLAG": {"compressors": BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle")}}
+    """zarr codecs of the big arrays (:func:`xstack.schema.store_encoding`)."""
+    return store_encoding()
 
 
 INDEX_COLUMNS = ("TIME", "ANTENNA1", "ANTENNA2", "DATA_DESC_ID", "FIELD_ID", "SCAN_NUMBER",

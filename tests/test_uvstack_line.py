@@ -587,3 +587,95 @@ def test_options_checked_and_no_data():
                           line_frequency=HI, primary_beam="none")
     np.testing.assert_allclose(by_freq.flux_jy, by_z.flux_jy, rtol=1e-9, atol=1e-12)
     assert np.nansum(by_z.flux_jy) * 20 == pytest.approx(1.0, rel=1e-3)
+
+
+def _lazy_store(tmp_path):
+    """A store of several time chunks with two targets' lines, and its catalog."""
+    from xstack.schema import write_store
+
+    ra0, dec0 = np.degrees(VLA_CENTER)
+    nus = 1.30e9 + 100e3 * np.array([20, 28])
+    targets = [(VLA_CENTER[0], VLA_CENTER[1], nus[0]),
+               (VLA_CENTER[0] + np.radians(0.02), VLA_CENTER[1] + np.radians(0.01), nus[1])]
+    ds = _partition(seed=14, n_time=12, frame="LSRK",
+                    vis=_line_vis(targets, VLA_CENTER, _gaussian_line(2.0, 40.0)))
+    path = tmp_path / "data.zarr"
+    write_store({"p": _damage(ds, 5).chunk({"time": 3})}, path)
+    tab = Table({"ra": [ra0, ra0 + 0.02], "dec": [dec0, dec0 + 0.01], "z": HI / nus - 1})
+    return path, tab
+
+
+def test_lazy_equals_eager_and_reads_each_chunk_once(tmp_path):
+    """compute=False: a LazyResult computing to the eager result to the last bit (with .compute,
+    xstack.compute and dask.compute); computed beside a lazy continuum stack of the same data,
+    each VISIBILITY chunk is read once."""
+    import dask
+
+    import xstack
+    from tests._uvstack_helpers import CountVisibilityReads
+    from xstack._lazy import LazyResult
+    from xstack.schema import open_store
+
+    path, tab = _lazy_store(tmp_path)
+    tree = open_store(path)
+    kw = dict(line_frequency=HI, velocity_resolution=25.0, velocity_range=(-200, 200),
+              primary_beam="none")
+    eager = stack_lines(tree, tab, **kw)
+    lazy = stack_lines(tree, tab, compute=False, **kw)
+    assert isinstance(lazy, LazyResult) and dask.is_dask_collection(lazy)
+    for res in (lazy.compute(), xstack.compute(lazy)[0], dask.compute(lazy)[0]):
+        assert isinstance(res, type(eager))
+        assert res.flux_jy.tobytes() == eager.flux_jy.tobytes()
+        assert res.flux_cov_jy2.tobytes() == eager.flux_cov_jy2.tobytes()
+        np.testing.assert_array_equal(res.n_targets_per_bin, eager.n_targets_per_bin)
+        assert (res.n_visibilities, res.n_positions) == (eager.n_visibilities, eager.n_positions)
+    cont = xstack.stack_uv(tree, tab, primary_beam="none")
+    with dask.config.set(scheduler="sync"):
+        with CountVisibilityReads() as one:
+            stack_lines(tree, tab, compute=False, **kw).compute()
+        with CountVisibilityReads() as both:
+            rc, rl = xstack.compute(xstack.stack_uv(tree, tab, primary_beam="none", compute=False),
+                                    stack_lines(tree, tab, compute=False, **kw))
+    assert one.reads == len(tree["p"]["VISIBILITY"].chunks[0]) == 4
+    assert both.reads == one.reads  # the continuum and the line stack: one read per chunk
+    assert rl.flux_jy.tobytes() == eager.flux_jy.tobytes()
+    assert rc.flux_jy == cont.flux_jy
+
+
+def test_lazy_with_out_writes_the_eager_store(tmp_path, monkeypatch):
+    """compute=False with out: nothing is a store before the compute; after it the store
+    equals the eager run's (arrays and spectrum); a failed compute leaves nothing."""
+    import xstack
+    import xstack.uvstack.line as line_module
+    from xstack.schema import open_store
+
+    path, tab = _lazy_store(tmp_path)
+    kw = dict(line_frequency=HI, velocity_resolution=25.0, velocity_range=(-200, 200),
+              primary_beam="none")
+    eager = stack_lines(path, tab, out=tmp_path / "e.zarr", **kw)
+    lazy = stack_lines(path, tab, out=tmp_path / "l.zarr", compute=False, **kw)
+    assert not (tmp_path / "l.zarr").exists()
+    (res,) = xstack.compute(lazy)
+    assert res.out == str(tmp_path / "l.zarr")
+    assert res.flux_jy.tobytes() == eager.flux_jy.tobytes()
+    a, b = open_store(tmp_path / "e.zarr"), open_store(tmp_path / "l.zarr")
+    assert a.attrs["linestack"] == b.attrs["linestack"]
+    for name in ("VISIBILITY", "WEIGHT", "FLAG"):
+        np.testing.assert_array_equal(a["p"][name].values, b["p"][name].values)
+
+    real = line_module._block_line
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("injected chunk failure")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(line_module, "_block_line", failing)
+    lazy = stack_lines(path, tab, out=tmp_path / "f.zarr", compute=False, **kw)
+    with pytest.raises(RuntimeError, match="injected"):
+        xstack.compute(lazy)
+    assert calls
+    assert not (tmp_path / "f.zarr").exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".f.zarr")] == []

@@ -89,7 +89,9 @@ _API = {
     "fit_uv": "xstack.fit.uvfit:fit_uv",
     "fit_image": "xstack.fit.imfit:fit_image",
     "fit_line": "xstack.fit.line:fit_line",
+    "subtract_continuum": "xstack.fit.line:subtract_continuum",
     "estimate_noise": "xstack.noise.estimate:estimate_noise",
+    "estimate_line_noise": "xstack.noise.line:estimate_line_noise",
     # inspecting
     "info": "xstack._info:info",
     # where the dask work runs

@@ -55,7 +55,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         "zeroes the central N x N Fourier cells; a uv distance (4500m, "
                         "20klambda; a number with a decimal point is metres) zeroes every cell "
                         "below it")
-    from xstack.cli.linestack import VELOCITY_HELP, line_frequency, velocity_pair
+    from xstack.cli.linestack import (
+        VELOCITY_HELP,
+        add_continuum_options,
+        line_frequency,
+        velocity_pair,
+    )
 
     line = p.add_argument_group(
         "spectral lines (image cubes)",
@@ -73,6 +78,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     line.add_argument("--line-window", type=velocity_pair, default=None, metavar="A,B",
                       help="velocities the integrated flux and the moment-0 stamp sum over "
                            "(default: the fitted centre ± FWHM)")
+    add_continuum_options(line)
     p.add_argument("--cube-format", choices=V.CUBE_FORMATS, default="zarr",
                    help="format of OUT.cube.* (default zarr)")
     p.add_argument("--no-png", action="store_true", help="do not write OUT.png")
@@ -112,6 +118,10 @@ def run(args: argparse.Namespace) -> int:
                           "the wrong order?)")
     if args.line_frequency is not None:
         return _run_line(args, images, catalog, out)
+    for flag, given in (("--continuum-subtract", args.continuum_subtract),
+                        ("--line-free", args.line_free)):
+        if given is not None:
+            raise XstackError(f"{flag} goes with --line-frequency (a cube's line stack)")
     result = stack_images(images, catalog, stamp_size=args.stamp_size, method=args.method,
                           weighting=args.weighting, subpixel=args.subpixel or False,
                           primary_beam=_one_or_list(args.primary_beam), pbcor=args.pbcor,
@@ -150,7 +160,7 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
     from xstack._atomic import atomic_output, check_output
     from xstack.cli import emit_json
     from xstack.cli._output import warn
-    from xstack.cli.linestack import summary
+    from xstack.cli.linestack import check_continuum_options, subtract_continuum_of, summary
     from xstack.fit.line import fit_line, line_spectrum_figure, spectrum_table
     from xstack.imstack.line import stack_line_cube
 
@@ -164,6 +174,7 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
             raise XstackError(f"{flag} does not go with --line-frequency")
     if args.primary_beam and len(args.primary_beam) > 1:
         raise XstackError("--primary-beam: give it once with --line-frequency")
+    check_continuum_options(args)
     stem = out[:-5]
     names = {"ecsv": Path(f"{stem}_spectrum.ecsv"), "png": Path(f"{stem}_spectrum.png"),
              "mom0": Path(f"{stem}_mom0.png")}
@@ -180,13 +191,24 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
                           beam_mask_arcsec=args.beam_mask_arcsec,
                           primary_beam=(args.primary_beam or ["auto"])[0], out=out,
                           overwrite=args.overwrite)
+    res, baseline = subtract_continuum_of(res, args)
+    if baseline is not None:
+        # the moment-0 stamp without continuum: the same linear map on every pixel's spectrum
+        # (weights from the centre pixel's covariance; removes any per-pixel polynomial of
+        # the order exactly). OUT.fits keeps the cube as stacked.
+        import dataclasses
+
+        cube = np.asarray(res.stacked, dtype=np.float64)
+        sub = np.tensordot(baseline.matrix, np.nan_to_num(cube, nan=0.0), axes=(1, 0))
+        sub[~np.isfinite(cube)] = np.nan
+        res = dataclasses.replace(res, stacked=sub)
     fit = fit_line(res.velocity_kms, res.flux_jy, res.flux_cov_jy2,
                    velocity_edges_kms=res.velocity_edges_kms, window_kms=args.line_window)
     if not fit.converged:
         needs = "" if args.line_window is not None else \
             "; for an integrated flux give --line-window A,B"
         warn(f"no line fitted: {fit.message.replace('window_kms', '--line-window')}{needs}")
-    table = spectrum_table(res, fit)
+    table = spectrum_table(res, fit, baseline)
     with atomic_output(names["ecsv"], overwrite=args.overwrite) as tmp:
         table.write(str(tmp), format="ascii.ecsv")
     if not args.no_png:
@@ -218,7 +240,7 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
         plt.close(fig)
     seconds = time.perf_counter() - t0
     if args.json:
-        emit_json({**summary(res, fit), "output": str(out),
+        emit_json({**summary(res, fit, baseline), "output": str(out),
                    "spectrum_table": str(names["ecsv"]),
                    "spectrum_png": str(names["png"]) if "png" in names else None,
                    "moment0_png": str(names["mom0"]) if "mom0" in names else None,
@@ -237,5 +259,9 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
         line += (f"; centre {figure(fit.centre_kms, fit.centre_err_kms, 'km/s')}, FWHM "
                  f"{figure(fit.fwhm_kms, fit.fwhm_err_kms, 'km/s')}")
     say_result(f"{line}; from {count(res.n_positions, 'position')} ({args.method})")
+    if baseline is not None:
+        from xstack.cli.linestack import continuum_text
+
+        say_result(f"  continuum subtracted: {continuum_text(baseline)}")
     say_result("  wrote " + ", ".join([out, *map(str, names.values())]))
     return 0

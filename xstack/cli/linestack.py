@@ -63,6 +63,82 @@ def velocity_pair(text: str) -> tuple[float, float]:
 velocity_pair.__name__ = "velocity range"
 
 
+def velocity_ranges(text: str) -> tuple[tuple[float, float], ...]:
+    """argparse type of ``--line-free``: ``A,B[;C,D...]`` -> ((low, high), ...) km/s, each
+    range as :func:`velocity_pair` reads it."""
+    parts = [p for p in str(text).split(";") if p.strip()]
+    if not parts:
+        raise argparse.ArgumentTypeError(f"{text!r} is not velocity ranges A,B[;C,D...]")
+    return tuple(velocity_pair(p) for p in parts)
+
+
+velocity_ranges.__name__ = "velocity ranges"
+
+CONTINUUM_HELP = ("fit a polynomial of degree ORDER (0: a constant, 1: a straight line) to the "
+                  "bins wholly inside the --line-free ranges, by least squares with the bins' "
+                  "covariance, and subtract it from the spectrum before the fit and the "
+                  "integral (the covariance propagated exactly); needs --line-free")
+LINE_FREE_HELP = ("velocity ranges free of line emission for --continuum-subtract, "
+                  "A,B[;C,D...] (quote the ';'): e.g. --line-free='-600,-300;300,600km/s'; "
+                  "they must not overlap --line-window")
+
+
+def add_continuum_options(p: Any) -> None:
+    """``--continuum-subtract ORDER`` and ``--line-free RANGES`` (linestack, imstack)."""
+    p.add_argument("--continuum-subtract", type=int, default=None, metavar="ORDER",
+                   help=CONTINUUM_HELP)
+    p.add_argument("--line-free", type=velocity_ranges, default=None, metavar="A,B[;C,D...]",
+                   help=LINE_FREE_HELP)
+
+
+def check_continuum_options(args: argparse.Namespace) -> None:
+    """One-line errors for ``--continuum-subtract``/``--line-free`` before any computation."""
+    order, free = args.continuum_subtract, args.line_free
+    if order is None and free is None:
+        return
+    if free is None:
+        raise XstackError("--continuum-subtract needs --line-free A,B[;C,D...]: the velocity "
+                          "ranges free of line emission the continuum is fitted on")
+    if order is None:
+        raise XstackError("--line-free needs --continuum-subtract ORDER (the polynomial's "
+                          "degree)")
+    if order < 0:
+        raise XstackError(f"--continuum-subtract must be a degree >= 0, got {order}")
+    window = args.line_window
+    if window is not None:
+        for lo, hi in free:
+            if lo < window[1] and hi > window[0]:
+                raise XstackError(f"--line-free range {lo:g},{hi:g} km/s overlaps --line-window "
+                                  f"{window[0]:g},{window[1]:g} km/s")
+
+
+def subtract_continuum_of(res: Any, args: argparse.Namespace) -> tuple[Any, Any]:
+    """(the stack result with its spectrum continuum-subtracted, the
+    :class:`~xstack.fit.line.ContinuumBaseline`) with ``--continuum-subtract``, else
+    (``res``, None)."""
+    import dataclasses
+
+    import numpy as np
+
+    from xstack.errors import OptionError
+    from xstack.fit.line import subtract_continuum
+
+    if args.continuum_subtract is None:
+        return res, None
+    try:
+        flux, cov, baseline = subtract_continuum(
+            res.velocity_edges_kms, res.flux_jy, res.flux_cov_jy2,
+            order=args.continuum_subtract, line_free_kms=args.line_free,
+            line_window_kms=args.line_window)
+    except OptionError as exc:
+        text = str(exc).replace("line_free_kms", "--line-free").replace(
+            "order=", "--continuum-subtract ").replace("line window", "--line-window")
+        raise XstackError(text) from None
+    err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    err[~np.isfinite(flux)] = np.nan
+    return dataclasses.replace(res, flux_jy=flux, flux_err_jy=err, flux_cov_jy2=cov), baseline
+
+
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     from xstack.cli import _types
 
@@ -113,6 +189,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="largest uv distance stacked (as --uvmin)")
     p.add_argument("--polarizations", default="parallel",
                    help="parallel (Stokes I, default), all, or a comma list such as RR,LL")
+    add_continuum_options(p)
     p.add_argument("--spectrum-png", default=None, metavar="P",
                    help="spectrum plot (default OUT_spectrum.png next to OUT.zarr)")
     p.add_argument("--no-png", action="store_true",
@@ -132,13 +209,15 @@ def _stem(out: Path | str) -> Path | str:
     return cli_path(str(out)[:-5] if str(out).endswith(".zarr") else str(out))  # a URL too
 
 
-def summary(res: Any, fit: Any) -> dict[str, Any]:
+def summary(res: Any, fit: Any, baseline: Any = None) -> dict[str, Any]:
     """The JSON object of a run (DESIGN.md section 2): the stack's summary, the fitted line
     (``line_centre_kms``, ``line_fwhm_kms``, ``line_peak_jy`` and their errors) and the
-    integral over ``line_window_kms``; NaN as null."""
+    integral over ``line_window_kms``; NaN as null. ``continuum_subtracted``: the baseline's
+    order, line-free ranges and coefficients with errors, or null."""
     from xstack._result import json_ready
 
     return json_ready({
+        "continuum_subtracted": baseline.to_dict() if baseline is not None else None,
         **res.to_dict(),
         "integrated_flux_jy_kms": fit.integrated_flux_jy_kms,
         "integrated_flux_err_jy_kms": fit.integrated_flux_err_jy_kms,
@@ -187,6 +266,7 @@ def _run(args: argparse.Namespace, plotter: Any) -> int:
     if args.velocity_resolution <= 0:
         raise XstackError(f"--velocity-resolution must be > 0 km/s, got "
                           f"{args.velocity_resolution:g}")
+    check_continuum_options(args)
     window = args.line_window
     lo, hi = args.velocity_range
     if window is not None and (window[0] < lo or window[1] > hi):
@@ -206,12 +286,13 @@ def _run(args: argparse.Namespace, plotter: Any) -> int:
                       pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
                       polarizations=pols, out=out, overwrite=args.overwrite,
                       progress=not args.no_progress)
+    res, baseline = subtract_continuum_of(res, args)
     fit = fit_line(res.velocity_kms, res.flux_jy, res.flux_cov_jy2,
                    velocity_edges_kms=res.velocity_edges_kms, window_kms=window)
     if not fit.converged:
         needs = "" if window is not None else "; for an integrated flux give --line-window A,B"
         warn(f"no line fitted: {fit.message.replace('window_kms', '--line-window')}{needs}")
-    table = spectrum_table(res, fit)
+    table = spectrum_table(res, fit, baseline)
     with atomic_output(ecsv, overwrite=args.overwrite) as tmp:
         table.write(str(tmp), format="ascii.ecsv")
     if png is not None:
@@ -222,7 +303,7 @@ def _run(args: argparse.Namespace, plotter: Any) -> int:
             Path(tmp).write_bytes(image)
     seconds = time.perf_counter() - t0
     if args.json:
-        emit_json({**summary(res, fit), "output": str(out), "spectrum_table": str(ecsv),
+        emit_json({**summary(res, fit, baseline), "output": str(out), "spectrum_table": str(ecsv),
                    "spectrum_png": None if png is None else str(png),
                    "seconds": round(seconds, 3)})
         return 0
@@ -240,9 +321,23 @@ def _run(args: argparse.Namespace, plotter: Any) -> int:
                  f"{figure(fit.peak_jy, fit.peak_err_jy, 'Jy')}")
     result(f"{line}; from {count(res.n_positions, 'position')}, "
            f"{count(res.n_visibilities, 'visibility')}")
+    if baseline is not None:
+        result(f"  continuum subtracted: {continuum_text(baseline)}")
     result(f"  wrote {out}, {ecsv}" + (f", {png}" if png is not None else ""))
     detail(f"{len(res.velocity_kms)} bins of {args.velocity_resolution:g} km/s from "
            f"{res.velocity_edges_kms[0]:g} to {res.velocity_edges_kms[-1]:g} km/s, frame "
            f"{res.frame}, weighting {args.weighting}, primary beam {args.primary_beam}; "
            f"fit chi2 {fit.chi2:.4g} for {fit.dof} degrees of freedom")
     return 0
+
+
+def continuum_text(baseline: Any) -> str:
+    """One line about the subtracted continuum: its order, ranges and coefficients."""
+    from xstack.cli._output import figure
+
+    ranges = "; ".join(f"{lo:g}..{hi:g}" for lo, hi in baseline.line_free_kms)
+    terms = ", ".join(
+        f"c{k} " + figure(c, e, "Jy" if k == 0 else f"Jy/(km/s)^{k}")
+        for k, (c, e) in enumerate(zip(baseline.coefficients_jy, baseline.coefficient_errors)))
+    return (f"order {baseline.order} over {ranges} km/s "
+            f"({int(baseline.fit_bins.sum())} bins): {terms}")

@@ -61,6 +61,28 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--image-corrected", choices=("yes", "no"), default=None,
                    help="image domain: whether the image is primary-beam corrected (default: "
                         "its header's XSPBCOR); an uncorrected image is divided by its beam")
+    g = p.add_argument_group(
+        "line stacks", "with --line-frequency: the noise of the uv line stack per velocity bin "
+        "(--method random: the targets at random positions with redshifts drawn from theirs; "
+        "mc: Gaussian lines injected there and recovered; bootstrap); see docs/linestack.md")
+    from xstack.cli.linestack import line_frequency, velocity_pair
+
+    g.add_argument("--line-frequency", type=line_frequency, default=None, metavar="F",
+                   help="rest frequency of the line (HI, CO(1-0), 1420.405751786MHz, ...)")
+    g.add_argument("--velocity-resolution", type=_types.velocity_kms, default=20.0,
+                   metavar="V", help="velocity bin width (20km/s)")
+    g.add_argument("--velocity-range", type=velocity_pair, default=(-600.0, 600.0),
+                   metavar="A,B", help="velocity range about each line (-600,600km/s)")
+    g.add_argument("--frame", choices=V.LINE_FRAMES, default="lsrk",
+                   help="frame of the catalog's redshifts (TOPO data are converted)")
+    g.add_argument("--line-flux", dest="line_flux_jy_kms", type=float, default=None,
+                   metavar="JYKMS", help="mc: integrated flux of the injected lines, Jy km/s "
+                   "(default: the catalog's line_flux_jy_kms column)")
+    g.add_argument("--line-fwhm", dest="line_fwhm_kms", type=_types.velocity_kms, default=None,
+                   metavar="V", help="mc: FWHM of the injected lines (default: the catalog's "
+                   "line_fwhm_kms column)")
+    g.add_argument("--redshifts", choices=("permute", "resample"), default="permute",
+                   help="random/mc: the targets' redshifts permuted (default) or resampled")
     p.add_argument("--autocorrelations", action="store_true",
                    help="include autocorrelations (default: left out; they measure system "
                         "power, not the sky)")
@@ -90,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
     if args.realizations < 2 and args.method != "analytic":
         raise XstackError(f"need at least 2 realisations to estimate a scatter, got {args.realizations}")
     data = cli_path(args.data)  # a store URL stays a URL
+    if args.line_frequency is not None:
+        return _run_line(args, data)
     domain = "image" if str(data).lower().endswith((".fits", ".fit", ".fts")) else "uv"
     if domain == "image" and args.profile_png:
         raise XstackError("--profile-png needs visibilities (a .zarr store), not an image")
@@ -149,6 +173,61 @@ def run(args: argparse.Namespace) -> int:
         result(f"  bias   = {jy(res.bias_jy)}")
     if res.target_flux_jy is not None:
         result(f"  target stack = {jy(res.target_flux_jy)}")
+    if "region" in res.extra:
+        result(f"  region: {res.extra['region']}")
+    for k, v in files.items():
+        result(f"  {k}: {v}")
+    return 0
+
+
+def _run_line(args: argparse.Namespace, data) -> int:
+    """``xstack noise DATA CATALOG --line-frequency F``: the line stack's noise per bin."""
+    import sys
+
+    import numpy as np
+
+    from xstack._atomic import atomic_output
+    from xstack.cli import emit_json
+    from xstack.cli._output import figure, result
+    from xstack.noise.line import estimate_line_noise, plot_line_noise
+
+    if str(data).lower().endswith((".fits", ".fit", ".fts")):
+        raise XstackError("--line-frequency needs visibilities (a .zarr store): the image-domain "
+                          "line noise is not available yet")
+    if args.profile_png:
+        raise XstackError("--profile-png is for continuum stacks, not with --line-frequency")
+    if args.method == "analytic":
+        raise XstackError("--method analytic with --line-frequency: the analytic per-bin error "
+                          "is xstack linestack's flux_err_jy; use random, mc or bootstrap")
+    res = estimate_line_noise(
+        with_data_group(data, args.data_group), args.catalog,
+        line_frequency=args.line_frequency, method=args.method, realizations=args.realizations,
+        seed=args.seed, redshifts=args.redshifts, line_flux_jy_kms=args.line_flux_jy_kms,
+        line_fwhm_kms=args.line_fwhm_kms, min_separation_arcsec=args.min_separation,
+        avoid=args.avoid, region=args.region, field_radius_arcsec=args.field_radius,
+        velocity_resolution=args.velocity_resolution, velocity_range=args.velocity_range,
+        frame=args.frame, weighting=args.weighting, primary_beam=args.primary_beam,
+        pb_cutoff=args.pb_cutoff, uvmin=args.uvmin, uvmax=args.uvmax,
+        progress=not args.no_progress and sys.stderr.isatty())
+    files = {}
+    if args.png:
+        files["png"] = str(plot_line_noise(res, args.png, overwrite=args.overwrite))
+    if args.table:
+        with atomic_output(args.table, overwrite=args.overwrite) as tmp:
+            res.table().write(str(tmp), format="ascii.ecsv")
+        files["table"] = str(args.table)
+    out = res.to_dict()
+    out.update(files)
+    if args.json:
+        emit_json(out)
+        return 0
+    like = list(res.noise_jy[np.isfinite(res.noise_jy)])
+    result(f"line noise estimate ({res.method}, {res.realizations} realisations, "
+           f"{res.n_positions} positions per realisation)")
+    result("  velocity [km/s]   noise            bias")
+    for v, n, b in zip(res.velocity_kms, res.noise_jy, res.bias_jy):
+        result(f"  {v:10.1f}   {figure(n, unit='Jy', like=like):>14}   "
+               f"{figure(b, unit='Jy', like=like):>14}")
     if "region" in res.extra:
         result(f"  region: {res.extra['region']}")
     for k, v in files.items():

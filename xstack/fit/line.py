@@ -423,16 +423,218 @@ def fit_line(velocity_kms: Any, flux_jy: Any, flux_cov_jy2: Any, *,
                    covariance=cov)
 
 
+# --- continuum subtraction ------------------------------------------------------------------
+
+@dataclass(kw_only=True)
+class ContinuumBaseline(Result):
+    """The polynomial continuum :func:`subtract_continuum` fitted and removed.
+
+    Attributes
+    ----------
+    order : degree of the polynomial in velocity (0: a constant)
+    line_free_kms : the line-free ranges ((low, high), ...), km/s
+    coefficients_jy, coefficient_errors : c_0 ... c_order of
+        sum_k c_k v^k (v in km/s, c_k in Jy (km/s)^-k) and their 1-sigma errors
+    coefficient_covariance : (order + 1, order + 1) covariance of the coefficients
+    flux_jy, flux_err_jy : the baseline averaged over each bin (every bin, also those with no
+        data) and its 1-sigma error, Jy
+    fit_bins : bool mask of the bins the fit used (wholly inside a line-free range, with data)
+    chi2, dof : r^T C^-1 r of the fit over ``fit_bins`` and its degrees of freedom
+    matrix : (nbin, nbin) the linear map M of the subtraction, S' = M S on the bins with data
+        (the identity on bins without): apply it to any spectrum on the same bins, e.g. each
+        pixel of a stacked cube
+    """
+
+    order: int
+    line_free_kms: tuple[tuple[float, float], ...]
+    coefficients_jy: np.ndarray
+    coefficient_errors: np.ndarray
+    coefficient_covariance: np.ndarray
+    flux_jy: np.ndarray
+    flux_err_jy: np.ndarray
+    fit_bins: np.ndarray
+    chi2: float = _NAN
+    dof: int = 0
+    matrix: np.ndarray | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary (NaN becomes None)."""
+        return {
+            "order": int(self.order),
+            "line_free_kms": [[float(a), float(b)] for a, b in self.line_free_kms],
+            "coefficients_jy": [finite_or_none(v) for v in self.coefficients_jy],
+            "coefficient_errors": [finite_or_none(v) for v in self.coefficient_errors],
+            "coefficient_units": ["Jy" if k == 0 else f"Jy (km/s)^-{k}"
+                                  for k in range(self.order + 1)],
+            "n_bins_fitted": int(np.count_nonzero(self.fit_bins)),
+            "chi2": finite_or_none(self.chi2),
+            "dof": int(self.dof),
+        }
+
+
+def _ranges(line_free_kms: Any) -> tuple[tuple[float, float], ...]:
+    """((low, high), ...) from one pair or a sequence of pairs, each checked."""
+    try:
+        arr = np.asarray(line_free_kms, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.empty((0, 3))
+    if arr.ndim == 1 and arr.size == 2:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
+        raise OptionError(f"line_free_kms must be velocity ranges ((low, high), ...) in km/s, "
+                          f"got {line_free_kms!r}", option="line_free_kms")
+    out = []
+    for lo, hi in arr:
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise OptionError(f"line_free_kms: each range needs finite low < high, got "
+                              f"({lo:g}, {hi:g})", option="line_free_kms")
+        out.append((float(lo), float(hi)))
+    return tuple(out)
+
+
+def polynomial_bin_averages(velocity_edges_kms: Any, order: int,
+                            scale_kms: float = 1.0) -> np.ndarray:
+    """(nbin, order + 1): the average over each bin [lo, hi] of (v / scale)^k, k = 0..order,
+    exactly: ((hi/s)^(k+1) − (lo/s)^(k+1)) / ((k + 1) (hi − lo)/s)."""
+    edges = np.asarray(velocity_edges_kms, dtype=np.float64) / float(scale_kms)
+    lo, hi = edges[:-1], edges[1:]
+    k = np.arange(order + 1)
+    return ((hi[:, None] ** (k + 1) - lo[:, None] ** (k + 1))
+            / ((k + 1) * (hi - lo)[:, None]))
+
+
+def subtract_continuum(velocity_edges_kms: Any, flux_jy: Any, flux_cov_jy2: Any, *,
+                       order: int, line_free_kms: Any, line_window_kms: Any = None
+                       ) -> tuple[np.ndarray, np.ndarray, ContinuumBaseline]:
+    """Fit a polynomial continuum to line-free bins and subtract it from the whole spectrum.
+
+    The polynomial sum_k c_k v^k is fitted by generalised least squares with the bins'
+    covariance C over the bins lying *wholly* inside one of the line-free ranges (a bin only
+    partly inside is left out of the fit: it may hold some line), as the polynomial's exact
+    average over each bin (its integral over the bin divided by the width: no error from
+    evaluating at bin centres). The baseline's bin averages are subtracted from every bin.
+    The result is linear in the spectrum, S' = M S with
+    M = I − A (X^T C^-1 X)^-1 X^T C^-1 P (A: the polynomial's bin averages on all bins, X those
+    on the fitted bins, P selects them), so its covariance is exactly C' = M C M^T — the
+    baseline's own error and its correlation with every bin included.
+
+    Parameters
+    ----------
+    velocity_edges_kms
+        Bin edges, km/s, increasing (nbin + 1).
+    flux_jy
+        Flux density per bin, Jy. NaN bins (no target covered them) stay NaN and are left
+        out of the fit.
+    flux_cov_jy2
+        Covariance of the bins, Jy^2, (nbin, nbin); a 1-D array is the bins' variances.
+    order
+        Degree of the polynomial, >= 0 (0: a constant, 1: a straight line).
+    line_free_kms
+        The velocity ranges free of line emission, km/s: one (low, high) or a sequence of
+        them.
+    line_window_kms
+        (low, high), km/s, the line's window, or None; a line-free range overlapping it is an
+        error.
+
+    Returns
+    -------
+    (flux_jy, flux_cov_jy2, baseline)
+        The subtracted spectrum (Jy; NaN where the input is), its covariance (Jy^2,
+        (nbin, nbin); NaN rows and columns for NaN bins) and the :class:`ContinuumBaseline`.
+
+    Raises
+    ------
+    OptionError
+        A negative or non-integer order, bad ranges, a range overlapping the line window,
+        fewer than order + 2 usable bins wholly inside the line-free ranges (at least one
+        more than the polynomial's parameters, so the fit is checked by one degree of
+        freedom), or a covariance that does not constrain the polynomial.
+    """
+    if isinstance(order, bool) or not float(order).is_integer() or int(order) < 0:
+        raise OptionError(f"order={order!r}: the polynomial's degree must be an integer >= 0",
+                          option="order")
+    order = int(order)
+    ranges = _ranges(line_free_kms)
+    edges = np.asarray(velocity_edges_kms, dtype=np.float64).ravel()
+    _, s, c, edges = _check_spectrum(0.5 * (edges[1:] + edges[:-1]), flux_jy, flux_cov_jy2,
+                                     edges)
+    if line_window_kms is not None:
+        w_lo, w_hi = _window(line_window_kms)
+        for lo, hi in ranges:
+            if lo < w_hi and hi > w_lo:
+                raise OptionError(f"line_free_kms range ({lo:g}, {hi:g}) km/s overlaps the line "
+                                  f"window ({w_lo:g}, {w_hi:g}) km/s: the continuum fit would "
+                                  "remove line flux", option="line_free_kms")
+    n = s.size
+    var = np.diag(c)
+    ok = np.isfinite(s) & np.isfinite(var) & (var > 0)
+    if ok.any():
+        ok &= np.all(np.isfinite(c[:, ok]), axis=1)
+    inside = np.zeros(n, dtype=bool)
+    for lo, hi in ranges:
+        inside |= (edges[:-1] >= lo) & (edges[1:] <= hi)
+    free = inside & ok
+    nfree = int(free.sum())
+    if nfree < order + 2:
+        raise OptionError(f"line_free_kms holds {nfree} bins with data wholly inside its "
+                          f"ranges; a polynomial of order={order} needs at least {order + 2}",
+                          option="line_free_kms")
+    # the polynomial in v / scale: well conditioned for any order on a +-1000 km/s axis
+    scale = float(np.max(np.abs(edges))) or 1.0
+    a_all = polynomial_bin_averages(edges, order, scale)
+    x = a_all[free]
+    whiten, rank = _whitener(c[np.ix_(free, free)])
+    if rank < order + 2:
+        raise OptionError(f"the covariance of the {nfree} line-free bins has rank {rank}: too "
+                          f"few independent bins for order={order}", option="line_free_kms")
+    w = whiten(np.eye(nfree))  # W with W^T W = C^-1 (on the constrained subspace)
+    xw = w @ x
+    normal = xw.T @ xw
+    try:
+        cov_scaled = np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        raise OptionError(f"the line-free bins do not constrain a polynomial of order={order}",
+                          option="line_free_kms") from None
+    gain = cov_scaled @ xw.T @ w  # (X^T C^-1 X)^-1 X^T C^-1, (order + 1, nfree)
+    beta_scaled = gain @ s[free]
+    resid = w @ (s[free] - x @ beta_scaled)
+    # M on the bins with data; the rows and columns of NaN bins stay NaN
+    idx = np.flatnonzero(ok)
+    m = np.eye(idx.size)
+    cols = np.searchsorted(idx, np.flatnonzero(free))
+    m[:, cols] -= a_all[ok] @ gain
+    s_out = np.full(n, np.nan)
+    s_out[ok] = m @ s[ok]
+    c_out = np.full((n, n), np.nan)
+    c_out[np.ix_(ok, ok)] = m @ c[np.ix_(ok, ok)] @ m.T
+    base = a_all @ beta_scaled
+    base_var = np.einsum("ij,jk,ik->i", a_all, cov_scaled, a_all)
+    powers = scale ** -np.arange(order + 1, dtype=np.float64)
+    coef_cov = cov_scaled * np.outer(powers, powers)
+    m_full = np.eye(n)
+    m_full[np.ix_(ok, ok)] = m
+    baseline = ContinuumBaseline(
+        order=order, line_free_kms=ranges, coefficients_jy=beta_scaled * powers,
+        coefficient_errors=np.sqrt(np.diag(coef_cov)), coefficient_covariance=coef_cov,
+        flux_jy=base, flux_err_jy=np.sqrt(np.clip(base_var, 0.0, None)), fit_bins=free,
+        chi2=float(resid @ resid), dof=rank - (order + 1), matrix=m_full)
+    return s_out, c_out, baseline
+
+
 # --- the spectrum as a table and a picture ---------------------------------------------------
 
-def spectrum_table(result: Any, fit: LineFit | None = None) -> Any:
+def spectrum_table(result: Any, fit: LineFit | None = None,
+                   baseline: ContinuumBaseline | None = None) -> Any:
     """A line stack's spectrum as an :class:`astropy.table.Table` with units, one row a bin.
 
     Columns ``velocity_kms`` (centre), ``velocity_lo_kms``, ``velocity_hi_kms``, ``flux_jy``,
     ``flux_err_jy``, ``n_targets``, ``flux_cov_jy2`` (the bin's row of the covariance, so the
     table alone can be refitted) and, with a converged ``fit``, ``model_jy`` (the fitted
     Gaussian averaged over the bin). ``meta`` holds the fit (:meth:`LineFit.to_dict`), the rest
-    frequency, frame, ``n_positions`` and ``n_visibilities``.
+    frequency, frame, ``n_positions`` and ``n_visibilities``. With a ``baseline``
+    (:func:`subtract_continuum`; ``result`` then holds the subtracted spectrum) also
+    ``baseline_jy`` and ``baseline_err_jy`` (the continuum removed, per bin: ``flux_jy +
+    baseline_jy`` is the spectrum before subtraction) and ``meta["continuum_subtracted"]``.
 
     Parameters
     ----------
@@ -441,6 +643,8 @@ def spectrum_table(result: Any, fit: LineFit | None = None) -> Any:
         attributes).
     fit
         The :func:`fit_line` of the spectrum, or None.
+    baseline
+        The continuum subtracted from ``result``'s spectrum, or None.
     """
     import astropy.units as u
     from astropy.table import Table
@@ -458,11 +662,15 @@ def spectrum_table(result: Any, fit: LineFit | None = None) -> Any:
     t["flux_cov_jy2"] = np.asarray(result.flux_cov_jy2, dtype=np.float64) * u.Jy**2
     if fit is not None and fit.converged:
         t["model_jy"] = gaussian_bins(fit.values, edges[:-1], edges[1:]) * u.Jy
+    if baseline is not None:
+        t["baseline_jy"] = np.asarray(baseline.flux_jy, dtype=np.float64) * u.Jy
+        t["baseline_err_jy"] = np.asarray(baseline.flux_err_jy, dtype=np.float64) * u.Jy
     t.meta.update(json_ready({
         "rest_frequency_hz": float(result.rest_frequency_hz), "frame": result.frame,
         "n_positions": int(result.n_positions), "n_visibilities": int(result.n_visibilities),
         "velocity_convention": "v = c (nu_c - nu) / nu_c about each target's line centre",
-        "fit": fit.to_dict() if fit is not None else None}))
+        "fit": fit.to_dict() if fit is not None else None,
+        "continuum_subtracted": baseline.to_dict() if baseline is not None else None}))
     return t
 
 
@@ -472,7 +680,9 @@ def line_spectrum_figure(table: Any, *, title: str | None = None) -> Any:
     below it the number of targets per bin.
 
     Artists carry ``gid``: ``"spectrum"``, ``"error"``, ``"model"``, ``"window"``,
-    ``"n_targets"``.
+    ``"n_targets"``; with a ``baseline_jy`` column (continuum subtracted) also
+    ``"unsubtracted"`` (the spectrum before subtraction), ``"baseline"`` (the continuum
+    removed) and ``"line_free"`` (the ranges it was fitted on).
     """
     import matplotlib
 
@@ -497,6 +707,19 @@ def line_spectrum_figure(table: Any, *, title: str | None = None) -> Any:
                        label="stacked spectrum")
     steps.set_gid("spectrum")
     top.axhline(0.0, color="0.5", lw=0.8)
+    if "baseline_jy" in table.colnames:
+        base = np.asarray(table["baseline_jy"], dtype=np.float64)
+        cont = table.meta.get("continuum_subtracted") or {}
+        before = top.stairs((flux + base) * scale, edges, baseline=None, color="0.55", lw=0.8,
+                            label="before continuum subtraction")
+        before.set_gid("unsubtracted")
+        removed = top.stairs(base * scale, edges, baseline=None, color="C3", lw=1.0,
+                             ls="--", label=f"continuum (order {cont.get('order', '?')})")
+        removed.set_gid("baseline")
+        for i, (lo, hi) in enumerate(cont.get("line_free_kms") or []):
+            free = top.axvspan(lo, hi, ymin=0.0, ymax=0.04, color="C2", alpha=0.5,
+                               label="line-free" if i == 0 else None)
+            free.set_gid("line_free")
     window = fit.get("window_kms") or [None, None]
     if all(w is not None for w in window):
         span = top.axvspan(window[0], window[1], color="0.85", zorder=0,

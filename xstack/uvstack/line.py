@@ -29,6 +29,7 @@ import numpy as np
 import xarray as xr
 from astropy.table import Table
 
+from xstack._lazy import LazyResult
 from xstack._result import Result, json_ready
 from xstack._select import uv_range_mask
 from xstack.beams import DEFAULT_PB_CUTOFF
@@ -40,7 +41,7 @@ from xstack.spectral import (
     velocity_edges,
 )
 from xstack.uvstack import line_kernels
-from xstack.uvstack.stack import UvstackOptions, _as_dask, _load, _plan
+from xstack.uvstack.stack import UvstackOptions, _as_dask, _load, _optimised_now, _plan
 
 #: Frames a line stack can be made in (xstack._vocabulary.LINE_FRAMES).
 try:
@@ -255,7 +256,8 @@ def stack_lines(data: Any, positions: Any, *, line_frequency: Any,
                 frame: str = "lsrk", weighting: str = "pb", primary_beam: Any = "auto",
                 pb_cutoff: float = DEFAULT_PB_CUTOFF, uvmin: Any = None, uvmax: Any = None,
                 polarizations: Any = "parallel", out: str | os.PathLike | None = None,
-                overwrite: bool = False, progress: bool = False) -> LineStackResult:
+                overwrite: bool = False, progress: bool = False,
+                compute: bool = True) -> LineStackResult | LazyResult:
     """Stack the spectra of catalog targets at their own redshifts, in the uv-domain.
 
     Parameters
@@ -290,10 +292,17 @@ def stack_lines(data: Any, positions: Any, *, line_frequency: Any,
         Replace an existing ``out``.
     progress
         Progress bars on stderr.
+    compute
+        True: run the pass over the data now. False: return a
+        :class:`xstack._lazy.LazyResult` whose pass runs later, together with other lazy
+        results in one pass over shared data (``xstack.compute(continuum, line)`` reads each
+        chunk once), as ``stack_uv(..., compute=False)``. With ``out`` the store is begun now
+        and finished by the compute (removed if it fails or the result is dropped).
 
     Returns
     -------
     LineStackResult
+        Or, with ``compute=False``, a lazy result that computes to it.
 
     Raises
     ------
@@ -321,6 +330,8 @@ def stack_lines(data: Any, positions: Any, *, line_frequency: Any,
     write = out is not None
     graphs = [_partition_graph(p, centres, edges, frame_l, options, rest_hz, write)
               for p in plan.active]
+    if not compute:
+        return _lazy(plan, graphs, centres, edges, rest_hz, frame_l, options)
     results = _run(graphs, options, edges, len(inputs.table))
     return _assemble(plan, graphs, results, centres, edges, rest_hz, frame_l, options)
 
@@ -339,13 +350,7 @@ def _run(graphs: list[_Partition], options: UvstackOptions, edges: np.ndarray,
 
     def keep(results: tuple[Any, ...]) -> dict[str, Any]:
         done.append(results)
-        spec = _combine(graphs, results, edges, npos)
-        # the spectrum in the store's root attributes (NaN as null)
-        return {"linestack": json_ready({
-            "velocity_kms": 0.5 * (edges[:-1] + edges[1:]), "flux_jy": spec.flux,
-            "flux_err_jy": np.sqrt(np.diag(spec.cov)),
-            "n_targets_per_bin": spec.covered.sum(axis=0),
-            "n_visibilities": spec.nvis})}
+        return _store_attrs(_combine(graphs, results, edges, npos), edges)
 
     # one task per chunk makes the stacked chunk and its sums (no fusion: computed once)
     with dask.config.set({"optimization.fuse.active": False}):
@@ -353,6 +358,50 @@ def _run(graphs: list[_Partition], options: UvstackOptions, edges: np.ndarray,
                     overwrite=options.overwrite, progress=options.progress,
                     description="linestack", compute_with=sums, final_attrs=keep)
     return done[-1]
+
+
+def _lazy(plan, graphs: list[_Partition], centres, edges, rest_hz, frame,
+          options: UvstackOptions) -> LazyResult:
+    """The line stack's pass as a dask collection that finishes into a LineStackResult (the
+    pattern of :func:`xstack.uvstack.stack._lazy`: with ``out`` the store is begun now, its
+    chunk writes made by the same task per chunk as the sums, and finished in the caller)."""
+    sums = [g.sums for g in graphs]
+    write = None
+    writes: list[Any] = []
+    if options.out is not None:
+        from xstack.schema import StoreWrite
+
+        # as the eager write (_run): no low-level fusion, or the task making a stacked chunk
+        # and its sums runs once for each; the sums are optimised now so that the caller's
+        # configuration at compute time cannot fuse them
+        with dask.config.set({"optimization.fuse.active": False}):
+            write = StoreWrite({g.name: g.stacked for g in graphs}, options.out,
+                               kind="stacked", overwrite=options.overwrite)
+            sums = [_optimised_now(x) for x in sums]
+        writes = write.graphs
+    npos = len(plan.inputs.table)
+
+    def finish(values: list[Any]) -> LineStackResult:
+        results = tuple(values[len(writes):])
+        try:
+            spec = _combine(graphs, results, edges, npos)
+            if write is not None:
+                write.finish(_store_attrs(spec, edges))
+        except BaseException:
+            if write is not None:  # every task has run: nothing writes into it any more
+                write.abort()
+            raise
+        return _assemble(plan, graphs, results, centres, edges, rest_hz, frame, options)
+
+    return LazyResult([*writes, *sums], finish, "stack_lines", write=write)
+
+
+def _store_attrs(spec: _Spectrum, edges: np.ndarray) -> dict[str, Any]:
+    """The root attributes of the written stack: the spectrum (NaN as null)."""
+    return {"linestack": json_ready({
+        "velocity_kms": 0.5 * (edges[:-1] + edges[1:]), "flux_jy": spec.flux,
+        "flux_err_jy": np.sqrt(np.diag(spec.cov)),
+        "n_targets_per_bin": spec.covered.sum(axis=0), "n_visibilities": spec.nvis})}
 
 
 @dataclass

@@ -230,8 +230,8 @@ def test_incomplete_store_at_url_refused():
     """A store whose root says it is not complete (as every store is until its last write)
     is refused at a URL exactly as on disk."""
     import zarr
+    from conftest import make_partition
 
-    from tests.conftest import make_partition
     from xstack.schema import quiet_zarr_warnings, write_store
 
     url = f"{_url('memory')}/a.zarr"

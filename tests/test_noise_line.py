@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _uvstack_helpers import VLA_CENTER, antenna_layout, earth_rotation_uvw
 from astropy.table import Table
 from scipy.special import erf
 
-from tests._uvstack_helpers import VLA_CENTER, antenna_layout, earth_rotation_uvw
 from xstack.errors import OptionError
 from xstack.schema import new_partition
 from xstack.spectral import SPEED_OF_LIGHT_KMS

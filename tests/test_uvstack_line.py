@@ -7,11 +7,11 @@ import warnings
 
 import numpy as np
 import pytest
+from _uvstack_helpers import VLA_CENTER, antenna_layout, earth_rotation_uvw
 from astropy.table import Table
 from scipy.optimize import curve_fit
 from scipy.special import erf
 
-from tests._uvstack_helpers import VLA_CENTER, antenna_layout, earth_rotation_uvw
 from xstack.coords import SPEED_OF_LIGHT, angular_separation, radec_to_lmn
 from xstack.schema import new_partition
 from xstack.spectral import (
@@ -531,7 +531,7 @@ def test_writes_stacked_store(tmp_path):
 
 @pytest.fixture(scope="module")
 def cluster():
-    from tests._cluster_helpers import local_cluster
+    from _cluster_helpers import local_cluster
 
     with local_cluster() as c:
         yield c
@@ -610,9 +610,9 @@ def test_lazy_equals_eager_and_reads_each_chunk_once(tmp_path):
     xstack.compute and dask.compute); computed beside a lazy continuum stack of the same data,
     each VISIBILITY chunk is read once."""
     import dask
+    from _uvstack_helpers import CountVisibilityReads
 
     import xstack
-    from tests._uvstack_helpers import CountVisibilityReads
     from xstack._lazy import LazyResult
     from xstack.schema import open_store
 

@@ -105,6 +105,17 @@ def test_fits_cube_spectral_axis_and_beams(store, tmp_path):
         freq = w.spectral.pixel_to_world_values(np.arange(NCHAN))
         np.testing.assert_allclose(freq, F0 + DF * np.arange(NCHAN), rtol=1e-12)
         assert h["SPECSYS"] == "TOPOCENT" and h["CUNIT3"] == "Hz"
+        # when and where (FITS WCS paper III): what a reader needs to convert the frame
+        ds = open_store(store / "line.zarr")[list(open_store(store / "line.zarr").children)[0]]
+        t = np.asarray(ds["time"].values)
+        from astropy.time import Time
+
+        t_mjd = Time(t, format="datetime64").mjd if t.dtype.kind == "M" else t / 86400.0
+        assert h["MJD-OBS"] == pytest.approx(np.min(t_mjd), abs=1e-9)
+        assert h["MJD-AVG"] == pytest.approx(np.mean(t_mjd), abs=1e-9)
+        assert Time(h["DATE-OBS"], scale="utc").mjd == pytest.approx(np.min(t_mjd), abs=1e-8)
+        pos = np.asarray(ds["ANTENNA_POSITION"].values).mean(axis=0)
+        assert [h[f"OBSGEO-{a}"] for a in "XYZ"] == pytest.approx(list(pos), abs=1e-6)
         beams = hdul["BEAMS"].data
         assert len(beams) == NCHAN and h["CASAMBM"]
         np.testing.assert_allclose(beams["BMAJ"], cube.beams[:, 0], rtol=1e-6)
@@ -121,7 +132,7 @@ def test_cli_cube_then_line_imstack_recovers_the_line(store, tmp_path, capsys):
     assert main(["imstack", str(cube), str(store / "cat.ecsv"), str(out),
                  "--line-frequency", "HI", "--velocity-resolution", "30km/s",
                  "--velocity-range=-270,270km/s", "--weighting", "none",
-                 "--stamp-size", "24", "--json", "--no-progress"]) == 0
+                 "--stamp-size", "24", "--json", "--no-progress", "--frame", "cube"]) == 0
     res = json.loads(capsys.readouterr().out)
     for key in ("velocity_kms", "flux_jy", "flux_err_jy", "integrated_flux_jy_kms",
                 "integrated_flux_err_jy_kms", "line_fwhm_kms", "line_centre_kms",
@@ -138,6 +149,35 @@ def test_cli_cube_then_line_imstack_recovers_the_line(store, tmp_path, capsys):
         assert (tmp_path / f"stack{suffix}").exists()
     with fits.open(out) as hdul:
         assert hdul[0].header["CTYPE3"] == "VRAD"
+    assert res["frame"] == "topo"
+
+    # the catalog read as LSRK (the default): the cube's TOPOCENT axis converted with its
+    # MJD-AVG and OBSGEO keywords, so the topocentric line moves by -c (r - 1), r = nu_lsrk /
+    # nu_topo from astropy's SpectralCoord (not xstack.frames)
+    import astropy.units as u
+    from astropy.coordinates import EarthLocation, SkyCoord, SpectralCoord
+    from astropy.time import Time
+
+    h = fits.getheader(cube)
+    obs = EarthLocation.from_geocentric(*(h[f"OBSGEO-{a}"] for a in "XYZ"), unit=u.m)
+    sc = SpectralCoord(1.0 * u.GHz, observer=obs.get_itrs(Time(h["MJD-AVG"], format="mjd")),
+                       target=SkyCoord(h["CRVAL1"] * u.deg, h["CRVAL2"] * u.deg))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = float((sc.with_observer_stationary_relative_to("lsrk") / sc).to_value(u.one))
+    assert main(["imstack", str(cube), str(store / "cat.ecsv"), str(tmp_path / "lsrk.fits"),
+                 "--line-frequency", "HI", "--velocity-resolution", "30km/s",
+                 "--velocity-range=-270,270km/s", "--weighting", "none",
+                 "--stamp-size", "24", "--json", "--no-progress"]) == 0
+    lsrk = json.loads(capsys.readouterr().out)
+    assert lsrk["frame"] == "lsrk"
+    assert abs(C_KMS * (r - 1)) > 10.0
+    # the factor itself (xstack.frames against astropy: ~2e-9 apart), and the line's fitted
+    # centre moved by it (to 1.5 km/s: the two fits see the channels in other phases of the
+    # 30 km/s bins, and the channels box-smooth the line by 23 km/s)
+    assert lsrk["options"]["frame_ratio"] == pytest.approx(r, rel=1e-8)
+    assert lsrk["line_centre_kms"] - res["line_centre_kms"] == pytest.approx(
+        -C_KMS * (r - 1), abs=1.5)
 
 
 def test_cli_line_bad_inputs(store, tmp_path, capsys):

@@ -9,7 +9,7 @@ from astropy.table import Table
 from astropy.wcs import WCS
 from scipy.special import erf
 
-from xstack.errors import XstackError
+from xstack.errors import OptionError, XstackError
 from xstack.imstack.line import stack_line_cube
 from xstack.spectral import SPEED_OF_LIGHT_KMS as C_KMS
 
@@ -162,3 +162,87 @@ def test_bad_inputs(tmp_path):
     with pytest.raises(XstackError, match="column z .* or freq"):
         stack_line_cube(tmp_path / "c.fits", Table({"ra": cat["ra"], "dec": cat["dec"]}),
                         line_frequency="HI")
+
+
+# --- frames: a topocentric cube and a catalog of LSRK redshifts ----------------------------
+
+VLA_ITRF = (-1601185.4, -5041977.5, 3554875.9)  # m
+MJD_AVG = 60100.3
+
+
+def _astropy_topo_per_lsrk(ra, dec):
+    """nu_topo / nu_lsrk towards (ra, dec) at MJD_AVG seen from the VLA: astropy's
+    SpectralCoord (not xstack.frames)."""
+    import warnings
+
+    import astropy.units as u
+    from astropy.coordinates import EarthLocation, SkyCoord, SpectralCoord
+    from astropy.time import Time
+
+    t = Time(MJD_AVG, format="mjd", scale="utc")
+    obs = EarthLocation.from_geocentric(*VLA_ITRF, unit=u.m).get_itrs(obstime=t)
+    target = SkyCoord(ra * u.deg, dec * u.deg, frame="icrs")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        topo = SpectralCoord(1.0 * u.GHz, observer=obs, target=target)
+        lsrk = topo.with_observer_stationary_relative_to("lsrk")
+    return float((topo / lsrk).to_value(u.one))
+
+
+def _topo_cube(path, *, keywords=True):
+    """The four targets' lines at their catalog (LSRK) centres, written at the topocentric
+    frequencies astropy gives; the header says TOPOCENT (and when and where, if asked)."""
+    q = _astropy_topo_per_lsrk(150.0, 2.0)
+    # the lines at nu_topo = q nu_lsrk: the same cube as make_cube with z_topo
+    targets = [(px, py, z_at(REST / (1 + z) * q), f, v0, fw)
+               for px, py, z, f, v0, fw in TARGETS]
+    make_cube(path, targets)
+    with fits.open(path, mode="update") as hdul:
+        h = hdul[0].header
+        h["SPECSYS"] = "TOPOCENT"
+        if keywords:
+            h["MJD-AVG"] = MJD_AVG
+            h["DATE-OBS"] = "2023-06-20T00:00:00"  # another time: MJD-AVG must win
+            for axis, value in zip("XYZ", VLA_ITRF):
+                h[f"OBSGEO-{axis}"] = value
+    return Table(rows=[(ra, dec, z) for ra, dec, z in
+                       zip(*(make_cube(path.with_suffix(".lsrk.fits"), TARGETS)[c]
+                             for c in ("ra", "dec", "z")))], names=("ra", "dec", "z")), q
+
+
+def test_topocentric_cube_is_converted_to_the_catalog_frame(tmp_path):
+    """LSRK redshifts stacked on a TOPOCENT cube: converted with the header's MJD-AVG and
+    OBSGEO (the line centred to 0.5 km/s); as the cube's own frame (frame='cube') the line
+    sits at c (1 - q), q = nu_topo / nu_lsrk from astropy, within 0.5 km/s."""
+    from xstack.fit.line import fit_line
+
+    cat, q = _topo_cube(tmp_path / "topo.fits")
+    shift = C_KMS * (1 - q)
+    assert abs(shift) > 5.0  # the test means something: the Doppler shift is many km/s
+    grid = dict(velocity_resolution=10.0, velocity_range=(-300.0, 300.0))
+    fits_ = {}
+    for frame in ("lsrk", "cube"):
+        res = stack_line_cube(tmp_path / "topo.fits", cat, line_frequency=REST, frame=frame,
+                              primary_beam="none", weighting="none", **grid)
+        fit = fit_line(res.velocity_kms, res.flux_jy, res.flux_cov_jy2 + 1e-12 * np.eye(60),
+                       velocity_edges_kms=res.velocity_edges_kms)
+        fits_[frame] = (res, fit)
+    res, fit = fits_["lsrk"]
+    assert res.frame == "lsrk" and res.options["cube_frame"] == "topo"
+    # xstack.frames against astropy: 2e-9 apart (0.7 m/s)
+    assert res.options["frame_ratio"] == pytest.approx(1 / q, rel=1e-8)
+    assert abs(fit.centre_kms) < 0.5, fit.centre_kms
+    res, fit = fits_["cube"]
+    assert res.frame == "topo"
+    assert fit.centre_kms == pytest.approx(shift, abs=0.5)
+
+
+def test_topocentric_cube_without_time_or_place_is_a_clear_error(tmp_path):
+    cat, _ = _topo_cube(tmp_path / "bare.fits", keywords=False)
+    with pytest.raises(OptionError, match=r"MJD-AVG/MJD-OBS/DATE-OBS, OBSGEO-X/Y/Z.*frame 'cube'"):
+        stack_line_cube(tmp_path / "bare.fits", cat, line_frequency=REST, primary_beam="none")
+    with pytest.raises(OptionError, match="unknown frame"):
+        stack_line_cube(tmp_path / "bare.fits", cat, line_frequency=REST, frame="topo")
+    res = stack_line_cube(tmp_path / "bare.fits", cat, line_frequency=REST, frame="cube",
+                          primary_beam="none")
+    assert res.frame == "topo"

@@ -78,6 +78,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     line.add_argument("--line-window", type=velocity_pair, default=None, metavar="A,B",
                       help="velocities the integrated flux and the moment-0 stamp sum over "
                            "(default: the fitted centre ± FWHM)")
+    line.add_argument("--frame", choices=(*V.LINE_FRAMES, "cube"), default=None,
+                      help="frame of the catalog's redshifts (default lsrk): a cube in another "
+                           "frame (TOPOCENT from xstack image --cube) is converted with its "
+                           "DATE-OBS/MJD-AVG and OBSGEO keywords; cube: no conversion")
     add_continuum_options(line)
     p.add_argument("--cube-format", choices=V.CUBE_FORMATS, default="zarr",
                    help="format of OUT.cube.* (default zarr)")
@@ -119,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     if args.line_frequency is not None:
         return _run_line(args, images, catalog, out)
     for flag, given in (("--continuum-subtract", args.continuum_subtract),
-                        ("--line-free", args.line_free)):
+                        ("--line-free", args.line_free), ("--frame", args.frame)):
         if given is not None:
             raise XstackError(f"{flag} goes with --line-frequency (a cube's line stack)")
     result = stack_images(images, catalog, stamp_size=args.stamp_size, method=args.method,
@@ -189,8 +193,8 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
                           velocity_range=args.velocity_range, method=args.method,
                           weighting=args.weighting, stamp_size=args.stamp_size,
                           beam_mask_arcsec=args.beam_mask_arcsec,
-                          primary_beam=(args.primary_beam or ["auto"])[0], out=out,
-                          overwrite=args.overwrite)
+                          primary_beam=(args.primary_beam or ["auto"])[0],
+                          frame=args.frame or "lsrk", out=out, overwrite=args.overwrite)
     res, baseline = subtract_continuum_of(res, args)
     if baseline is not None:
         # the moment-0 stamp without continuum: the same linear map on every pixel's spectrum

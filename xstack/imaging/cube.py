@@ -119,9 +119,42 @@ def _plane_groups(freq: np.ndarray, width: np.ndarray, channels: int
              float(np.sum(np.abs(width[g * channels:(g + 1) * channels])))) for g in range(n)]
 
 
+def observation_keywords(parts: Sequence[Any]) -> dict[str, Any]:
+    """FITS keywords of when and where the data were taken (FITS WCS paper III, section 4.1):
+    DATE-OBS, MJD-OBS (the first integration), MJD-AVG (the mean of the integrations' times),
+    TIMESYS, and OBSGEO-X/Y/Z (the array centre, ITRF metres: the mean antenna position).
+
+    With them a reader converts the cube's topocentric frequencies to another frame (as
+    ``xstack imstack --line-frequency`` does: :func:`xstack.frames.frame_ratio` at MJD-AVG);
+    keywords whose data are missing are left out."""
+    from astropy.time import Time
+
+    times = [np.asarray(ds["time"].values, dtype=np.float64).ravel() for ds in parts
+             if "time" in ds.coords or "time" in ds]
+    t = np.concatenate(times) if times else np.empty(0)
+    t = t[np.isfinite(t)]
+    out: dict[str, Any] = {}
+    if t.size:
+        first = float(t.min()) / 86400.0
+        out["DATE-OBS"] = (Time(first, format="mjd", scale="utc").isot, "first integration (UTC)")
+        out["MJD-OBS"] = (first, "[d] first integration")
+        out["MJD-AVG"] = (float(np.mean(t)) / 86400.0, "[d] mean time of the integrations")
+        out["TIMESYS"] = "UTC"
+    pos = [np.asarray(ds["ANTENNA_POSITION"].values, dtype=np.float64).reshape(-1, 3)
+           for ds in parts if "ANTENNA_POSITION" in ds]
+    if pos and np.all(np.isfinite(pos[0])) and np.any(pos[0] != 0):
+        centre = pos[0].mean(axis=0)
+        for axis, value in zip("XYZ", centre):
+            out[f"OBSGEO-{axis}"] = (float(value), "[m] array centre, ITRF")
+    return out
+
+
 def _cube_header(plane_header: fits.Header, freqs: np.ndarray, beams: np.ndarray,
-                 frame: str, channels: int) -> fits.Header:
+                 frame: str, channels: int, observed: dict[str, Any] | None = None
+                 ) -> fits.Header:
     h = plane_header.copy()
+    for key, value in (observed or {}).items():
+        h[key] = value
     h["NAXIS3"] = int(freqs.size)
     h["CTYPE3"] = "FREQ"
     h["CRVAL3"] = float(freqs[0])
@@ -232,7 +265,9 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
     if out is not None:
         check_output(out, overwrite)
     keep = out is None if keep is None else bool(keep)
-    frame = frequency_frame(as_partitions(data)[0][1])
+    parts = [ds for _, ds in as_partitions(data)]
+    frame = frequency_frame(parts[0])
+    observed = observation_keywords(parts)
     planes = iter_planes(data, channels=channels, partitions=partitions, size=size,
                          cell_arcsec=cell_arcsec, weighting=weighting, robust=robust,
                          wterm=wterm, pbcor=pbcor, epsilon=epsilon, nthreads=nthreads,
@@ -268,7 +303,7 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
                     n = _count_planes(data, channels, partitions)
                     # the axis length is fixed up front; CRVAL3/CDELT3 and the beams at the end
                     hdr = _cube_header(template, np.full(n, centre), np.array([res.beam]),
-                                       frame, channels)
+                                       frame, channels, observed)
                     stream = fits.StreamingHDU(tmp, _primary(hdr))
                 for _ in pending:
                     blank = np.full(shape, np.nan)
@@ -286,7 +321,7 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
                               "in any plane")
         fr = np.asarray(freqs)
         bm = np.asarray(beams, dtype=np.float64)
-        header = _cube_header(template, fr, bm, frame, channels)
+        header = _cube_header(template, fr, bm, frame, channels, observed)
         if stream is not None:
             stream.close()
             # the beams are known only now: the final header and the BEAMS table

@@ -218,6 +218,51 @@ def _open_cube(hdul: fits.HDUList, path: Path) -> _Cube:
                  frame=frame, name=path.name, hdul=hdul)
 
 
+def cube_frame_ratio(c: _Cube, frame: str) -> tuple[float, str]:
+    """(r, the frame the stack is in) with nu_frame = r nu_cube for the cube's channels.
+
+    ``frame="cube"`` or a cube already in ``frame``: r = 1. Otherwise the Doppler factor of
+    :func:`xstack.frames.frame_ratio` at the cube's mean time (MJD-AVG, else MJD-OBS, else
+    DATE-OBS) for its array centre (OBSGEO-X/Y/Z, ITRF metres) towards its pointing centre
+    (OBSRA/OBSDEC, else the reference pixel): one factor for the cube, as one cube holds
+    the whole track (over an 8-hour track r varies by ~1e-7, 0.04 km/s at 21 cm, which the
+    cube averages over).
+    """
+    from xstack.frames import frame_name, frame_ratio
+
+    if frame == "cube" or c.frame == frame:
+        return 1.0, c.frame
+    h = c.header
+    if c.frame == "rest":
+        raise OptionError(f"{c.name}: SPECSYS {h.get('SPECSYS')!r} (rest frame) cannot be "
+                          f"converted to {frame}; give frame 'cube'", option="frame")
+    mjd = None
+    for key in ("MJD-AVG", "MJD-OBS"):
+        if key in h:
+            mjd = float(h[key])
+            break
+    if mjd is None and "DATE-OBS" in h:
+        from astropy.time import Time
+
+        mjd = float(Time(str(h["DATE-OBS"]), scale="utc").mjd)
+    geo = [h.get(f"OBSGEO-{a}") for a in "XYZ"]
+    if mjd is None or any(g is None for g in geo):
+        missing = ", ".join(k for k, ok in (("MJD-AVG/MJD-OBS/DATE-OBS", mjd is not None),
+                                             ("OBSGEO-X/Y/Z", all(g is not None for g in geo)))
+                            if not ok)
+        raise OptionError(f"{c.name} is in frame {frame_name(c.frame)} and its header has no "
+                          f"{missing} to convert it to {frame_name(frame)}: give frame 'cube' "
+                          "(--frame cube) if the catalog's redshifts are in the cube's frame",
+                          option="frame")
+    if "OBSRA" in h and "OBSDEC" in h:
+        ra0, dec0 = float(h["OBSRA"]), float(h["OBSDEC"])
+    else:
+        ra0, dec0 = (float(x) for x in c.celestial.wcs.crval[:2])
+    r = frame_ratio(mjd * 86400.0, ra0, dec0, np.asarray(geo, dtype=np.float64),
+                    to_frame=frame, from_frame=c.frame)
+    return float(np.asarray(r).ravel()[0]), frame
+
+
 def _stamp_cube(cube: np.ndarray, ix: int, iy: int, size: int) -> np.ndarray:
     """(nchan, size, size) stamp centred on pixel (ix, iy), NaN off the cube: the layout of
     :func:`xstack.imstack.kernels.extract_stamps` for every plane at once."""
@@ -256,7 +301,8 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
                     velocity_range: tuple[float, float] = (-600.0, 600.0),
                     method: str = "mean", weighting: str = "sigma2", stamp_size: int = 32,
                     beam_mask_arcsec: float | None = None, primary_beam: str = "auto",
-                    pb_cutoff: float | None = None, out: str | os.PathLike | None = None,
+                    pb_cutoff: float | None = None, frame: str = "lsrk",
+                    out: str | os.PathLike | None = None,
                     overwrite: bool = False) -> ImLineStackResult:
     """Stack the spectral lines of catalog targets in an image cube, aligned in velocity.
 
@@ -286,8 +332,21 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
     pb_cutoff
         Channels of a target where the beam is below this are left out (default the
         header's XSPBCUT, else 0.1).
+    frame
+        Frame of the catalog's redshifts: ``lsrk`` (default) or ``bary``; a cube in another
+        frame (``xstack image --cube`` of topocentric data: SPECSYS TOPOCENT) is converted
+        by the Doppler factor at its mean time (MJD-AVG, else MJD-OBS or DATE-OBS) for its
+        array centre (OBSGEO-X/Y/Z) towards its pointing centre, as the uv line stack
+        converts topocentric data; ``cube``: the redshifts are in the cube's own frame, no
+        conversion.
     out
         FITS file for the stacked cube (:meth:`ImLineStackResult.write`).
+
+    Raises
+    ------
+    OptionError
+        An unknown frame, or a cube in another frame whose header lacks the time or the
+        array position to convert it (``frame="cube"`` stacks it as it is).
     """
     from xstack.spectral import rest_frequency, velocity_edges
 
@@ -300,6 +359,9 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
     if int(stamp_size) < 8:
         raise OptionError(f"stamp size must be >= 8 pixels, got {stamp_size}",
                           option="stamp_size")
+    if frame not in (*_vocabulary.LINE_FRAMES, "cube"):
+        raise OptionError(f"unknown frame {frame!r} (use {', '.join(_vocabulary.LINE_FRAMES)} "
+                          "or cube)", option="frame")
     size = int(stamp_size)
     grid = velocity_edges(velocity_resolution, velocity_range)
     if out is not None:
@@ -313,7 +375,7 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
                       weighting=weighting, size=size, beam_mask_arcsec=beam_mask_arcsec,
                       primary_beam=primary_beam, pb_cutoff=pb_cutoff,
                       velocity_resolution=velocity_resolution, velocity_range=velocity_range,
-                      out=out, overwrite=overwrite)
+                      frame=frame, out=out, overwrite=overwrite)
     finally:
         c.close()
 
@@ -321,7 +383,7 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
 def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndarray,
            method: str, weighting: str, size: int, beam_mask_arcsec: float | None,
            primary_beam: str, pb_cutoff: float | None, velocity_resolution: float,
-           velocity_range: tuple[float, float], out: Any, overwrite: bool
+           velocity_range: tuple[float, float], frame: str, out: Any, overwrite: bool
            ) -> ImLineStackResult:
     """The stack of :func:`stack_line_cube` on an opened cube."""
     from xstack._inputs import Positions
@@ -332,6 +394,9 @@ def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndar
     pos = Positions.from_any(positions)
     table = Table(pos.as_table(), copy=True)
     centres = line_centres_hz(table, rest_hz)
+    # the catalog's line centres in the cube's frame: nu_frame = r nu_cube
+    ratio, frame_out = cube_frame_ratio(c, frame)
+    centres_cube = centres / ratio
     cat_w = pos.weight
     if weighting == "column" and cat_w is None:
         raise XstackError("weighting column needs a catalog column weight")
@@ -369,7 +434,7 @@ def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndar
     used = np.zeros(len(table), dtype=bool)
     n_bins = np.zeros(len(table), dtype=np.int64)
     for k in np.flatnonzero(inside):
-        v = velocity_kms(c.freq_edges_hz, centres[k])
+        v = velocity_kms(c.freq_edges_hz, centres_cube[k])
         o = overlap_lengths(v, grid)  # (nchan, nbin) km/s
         if not np.any(o > 0):
             continue
@@ -464,12 +529,13 @@ def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndar
         "velocity_range_kms": [float(x) for x in velocity_range], "method": method,
         "weighting": weighting, "stamp_size": size, "primary_beam": primary_beam,
         "pb_corrected_here": bool(correct), "pb_cutoff": cutoff,
-        "beam_mask_arcsec": None if bmaj is None else float(bmaj)})
+        "beam_mask_arcsec": None if bmaj is None else float(bmaj),
+        "frame": frame_out, "cube_frame": c.frame, "frame_ratio": float(ratio)})
     res = ImLineStackResult(
         velocity_edges_kms=grid, velocity_kms=0.5 * (grid[1:] + grid[:-1]), flux_jy=flux,
         flux_err_jy=err, flux_cov_jy2=cov, n_targets_per_bin=n_per_bin,
         n_positions=int(used.sum()), n_visibilities=0, positions=table,
-        rest_frequency_hz=rest_hz, frame=c.frame, stacked=stacked, weight_sum=weight_sum,
+        rest_frequency_hz=rest_hz, frame=frame_out, stacked=stacked, weight_sum=weight_sum,
         header=header, options=options, out=None if out is None else str(out))
     if out is not None:
         res.write(out, overwrite=overwrite)

@@ -251,9 +251,9 @@ def cube_frame_ratio(c: _Cube, frame: str) -> tuple[float, str]:
                                              ("OBSGEO-X/Y/Z", all(g is not None for g in geo)))
                             if not ok)
         raise OptionError(f"{c.name} is in frame {frame_name(c.frame)} and its header has no "
-                          f"{missing} to convert it to {frame_name(frame)}: give frame 'cube' "
-                          "(--frame cube) if the catalog's redshifts are in the cube's frame",
-                          option="frame")
+                          f"{missing} to convert it to {frame_name(frame)}; frame 'cube' "
+                          "stacks it in its own frame (the catalog's redshifts taken as "
+                          f"{frame_name(c.frame)})", option="frame")
     if "OBSRA" in h and "OBSDEC" in h:
         ra0, dec0 = float(h["OBSRA"]), float(h["OBSDEC"])
     else:

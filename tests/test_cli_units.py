@@ -37,6 +37,7 @@ QUANTITY_OPTIONS = {
     ("imstack", "--mask-radius"): _types.angle_arcsec,
     ("imstack", "--filter"): _types.filter_cells_or_distance,
     ("noise", "--flux"): _types.flux_jy,
+    ("noise", "--line-flux"): _types.line_flux_jy_kms,
     ("noise", "--min-separation"): _types.separation_arcsec,
     ("noise", "--field-radius"): _types.angle_arcsec,
     ("noise", "--uvmin"): _types.uv_distance,
@@ -138,6 +139,13 @@ def test_threshold(text, jy):
 def test_flux_option_against_astropy(text):
     assert _parse("noise", "--flux", text).flux == pytest.approx(
         u.Quantity(text).to_value(u.Jy), rel=1e-12)
+
+
+@pytest.mark.parametrize("text, jykms", [("0.2", 0.2), ("0.2Jy km/s", 0.2),
+                                         ("200mJy km/s", 0.2), ("200 Jy m / s", 0.2)])
+def test_line_flux_option(text, jykms):
+    assert _parse("noise", "--line-flux", text).line_flux_jy_kms == pytest.approx(jykms,
+                                                                                  rel=1e-12)
 
 
 @pytest.mark.parametrize("command", ["noise", "fit", "uvstack"])

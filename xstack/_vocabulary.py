@@ -45,3 +45,7 @@ NOISE_CORRELATIONS = ("psf", "residual", "none")
 # spectral-line stacking (xstack.frames, xstack.uvstack.line): the frames line stacks are
 # made in (TOPO data are converted per integration, xstack.frames.frame_ratio)
 LINE_FRAMES = ("lsrk", "bary")
+#: Frames of an image-cube line stack: the catalog's (the cube converted) or the cube's own.
+CUBE_LINE_FRAMES = (*LINE_FRAMES, "cube")
+#: How random line-noise targets take redshifts from the targets': permuted or resampled.
+REDSHIFT_DRAWS = ("permute", "resample")

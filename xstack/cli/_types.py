@@ -92,6 +92,23 @@ def _velocity(text: str) -> float:
     return parse_velocity(text, "km/s")
 
 
+def _line_flux(text: str) -> float:
+    """An integrated line flux in Jy km/s: 0.2, 0.2Jy km/s, 200mJy km/s, 2e-22W/m2 ... (any
+    unit astropy converts to Jy km/s)."""
+    import astropy.units as u
+
+    t = str(text).strip()
+    try:
+        return float(t)
+    except ValueError:
+        pass
+    try:
+        return float(u.Quantity(t).to_value(u.Jy * u.km / u.s))
+    except (TypeError, ValueError, u.UnitsError):
+        raise XstackError(f"{text!r} is not an integrated line flux (0.2Jy km/s, 200mJy km/s; "
+                          "a plain number is Jy km/s)") from None
+
+
 def _positive(value: float) -> str | None:
     return None if value > 0 else "must be > 0"
 
@@ -113,6 +130,8 @@ uv_distance = _argparse_type("uv distance", _uv_distance,
                              lambda text: _not_negative(_uv_distance_value(text)))
 #: A frequency > 0 in Hz (``--line-frequency``).
 frequency_hz = _argparse_type("frequency", _frequency, _positive)
+#: An integrated line flux >= 0 in Jy km/s (``--line-flux``).
+line_flux_jy_kms = _argparse_type("line flux", _line_flux, _not_negative)
 #: A velocity in km/s (``--velocity-resolution``).
 velocity_kms = _argparse_type("velocity", _velocity)
 

@@ -78,7 +78,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     line.add_argument("--line-window", type=velocity_pair, default=None, metavar="A,B",
                       help="velocities the integrated flux and the moment-0 stamp sum over "
                            "(default: the fitted centre ± FWHM)")
-    line.add_argument("--frame", choices=(*V.LINE_FRAMES, "cube"), default=None,
+    line.add_argument("--frame", choices=V.CUBE_LINE_FRAMES, default=None,
                       help="frame of the catalog's redshifts (default lsrk): a cube in another "
                            "frame (TOPOCENT from xstack image --cube) is converted with its "
                            "DATE-OBS/MJD-AVG and OBSGEO keywords; cube: no conversion")

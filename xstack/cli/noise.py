@@ -75,13 +75,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                    metavar="A,B", help="velocity range about each line (-600,600km/s)")
     g.add_argument("--frame", choices=V.LINE_FRAMES, default="lsrk",
                    help="frame of the catalog's redshifts (TOPO data are converted)")
-    g.add_argument("--line-flux", dest="line_flux_jy_kms", type=float, default=None,
-                   metavar="JYKMS", help="mc: integrated flux of the injected lines, Jy km/s "
-                   "(default: the catalog's line_flux_jy_kms column)")
+    g.add_argument("--line-flux", dest="line_flux_jy_kms", type=_types.line_flux_jy_kms,
+                   default=None, metavar="F", help="mc: integrated flux of the injected lines "
+                   "(0.2Jy km/s, 200mJy km/s; a plain number is Jy km/s; default: the "
+                   "catalog's line_flux_jy_kms column)")
     g.add_argument("--line-fwhm", dest="line_fwhm_kms", type=_types.velocity_kms, default=None,
                    metavar="V", help="mc: FWHM of the injected lines (default: the catalog's "
                    "line_fwhm_kms column)")
-    g.add_argument("--redshifts", choices=("permute", "resample"), default="permute",
+    g.add_argument("--redshifts", choices=V.REDSHIFT_DRAWS, default="permute",
                    help="random/mc: the targets' redshifts permuted (default) or resampled")
     p.add_argument("--autocorrelations", action="store_true",
                    help="include autocorrelations (default: left out; they measure system "

@@ -359,9 +359,9 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
     if int(stamp_size) < 8:
         raise OptionError(f"stamp size must be >= 8 pixels, got {stamp_size}",
                           option="stamp_size")
-    if frame not in (*_vocabulary.LINE_FRAMES, "cube"):
-        raise OptionError(f"unknown frame {frame!r} (use {', '.join(_vocabulary.LINE_FRAMES)} "
-                          "or cube)", option="frame")
+    if frame not in _vocabulary.CUBE_LINE_FRAMES:
+        raise OptionError(f"unknown frame {frame!r} (use "
+                          f"{', '.join(_vocabulary.CUBE_LINE_FRAMES)})", option="frame")
     size = int(stamp_size)
     grid = velocity_edges(velocity_resolution, velocity_range)
     if out is not None:

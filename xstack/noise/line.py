@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _vocabulary
 from xstack._inputs import Positions
 from xstack._json import finite_or_none
 from xstack._result import Result, json_ready
@@ -44,7 +45,7 @@ __all__ = ["LineNoiseResult", "estimate_line_noise"]
 #: the line-noise methods (the continuum's analytic noise is the stack's own flux_err_jy)
 LINE_NOISE_METHODS = ("random", "mc", "bootstrap")
 #: how random targets get their redshifts from the targets'
-REDSHIFT_DRAWS = ("permute", "resample")
+REDSHIFT_DRAWS = _vocabulary.REDSHIFT_DRAWS
 
 
 @dataclass(kw_only=True)

@@ -61,6 +61,18 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--channels", type=int, default=1, metavar="N",
                    help="with --cube: consecutive channels imaged together per plane "
                         "(default 1)")
+    from xstack.cli.linestack import VELOCITY_HELP, line_frequency
+
+    p.add_argument("--velocity-resolution", type=_types.velocity_kms, default=None, metavar="V",
+                   help="with --cube and --line-frequency: planes V wide in radio velocity "
+                        "about the rest frequency instead of channels (each the overlap-"
+                        f"weighted mean of the channels it covers; {VELOCITY_HELP})")
+    p.add_argument("--line-frequency", type=line_frequency, default=None, metavar="F",
+                   help="with --velocity-resolution: the rest frequency (HI, CO(1-0), "
+                        "1420.405751786MHz, ...)")
+    p.add_argument("--frame", choices=V.LINE_FRAMES, default=None,
+                   help="with --velocity-resolution: frame of the velocity grid (default lsrk; "
+                        "TOPO data are converted per integration)")
     p.add_argument("--png", action="store_true", help="also write OUT.png (quick-look)")
     p.add_argument("--autocorrelations", action="store_true",
                    help="image autocorrelations too (default: left out; they measure system "
@@ -132,6 +144,10 @@ def run(args: argparse.Namespace) -> int:
         return _run_cube(args)
     if args.channels != 1:
         raise XstackError("--channels needs --cube")
+    for flag, given in (("--velocity-resolution", args.velocity_resolution),
+                        ("--line-frequency", args.line_frequency), ("--frame", args.frame)):
+        if given is not None:
+            raise XstackError(f"{flag} needs --cube")
     names = output_names(args.out)
     if not args.png:
         names.pop("png")
@@ -230,6 +246,17 @@ def _run_cube(args: argparse.Namespace) -> int:
                               "pointing)")
     if args.channels < 1:
         raise XstackError("--channels must be >= 1")
+    velocity = args.velocity_resolution is not None
+    if velocity != (args.line_frequency is not None):
+        raise XstackError("--velocity-resolution and --line-frequency go together (a cube on a "
+                          "velocity grid about the line's rest frequency)")
+    if args.frame is not None and not velocity:
+        raise XstackError("--frame needs --velocity-resolution and --line-frequency")
+    if velocity and args.channels != 1:
+        raise XstackError("--channels does not go with --velocity-resolution")
+    if velocity and not args.velocity_resolution > 0:
+        raise XstackError(f"--velocity-resolution must be > 0 km/s, got "
+                          f"{args.velocity_resolution:g}")
     check_output(args.out, args.overwrite)
     if not path_exists(args.data):
         raise XstackError(f"{args.data}: no such store")
@@ -238,7 +265,9 @@ def _run_cube(args: argparse.Namespace) -> int:
                      robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
                      epsilon=args.epsilon, partitions=args.partition,
                      progress=not args.no_progress, autocorrelations=args.autocorrelations,
-                     out=args.out, overwrite=args.overwrite, keep=False)
+                     out=args.out, overwrite=args.overwrite, keep=False,
+                     velocity_resolution=args.velocity_resolution,
+                     line_frequency=args.line_frequency, frame=args.frame or "lsrk")
     if args.json:
         emit_json({**cube.to_dict(), "files": {"image": str(args.out)},
                    "cell_arcsec": args.cell, "size": [args.size, args.size],
@@ -249,8 +278,10 @@ def _run_cube(args: argparse.Namespace) -> int:
     from xstack.cli._output import result as say_result
 
     f = cube.frequency_hz
-    say_result(f"wrote {args.out}: dirty cube of {f.size} planes ({args.channels} channel"
-               f"{'s' if args.channels > 1 else ''} each), {args.size} x {args.size} px of "
+    per = (f"{args.velocity_resolution:g} km/s each" if velocity else
+           f"{args.channels} channel{'s' if args.channels > 1 else ''} each")
+    say_result(f"wrote {args.out}: dirty cube of {f.size} planes ({per}), "
+               f"{args.size} x {args.size} px of "
                f"{args.cell:g} arcsec, {figure(f[0], unit='Hz')} to {figure(f[-1], unit='Hz')} "
                f"({cube.frame}), {args.weighting} weighting")
     return 0

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import xarray as xr
 from astropy.io import fits
 
 from xstack._result import Result
@@ -162,7 +163,8 @@ def _cube_header(plane_header: fits.Header, freqs: np.ndarray, beams: np.ndarray
     h["CRPIX3"] = 1.0
     h["CUNIT3"] = "Hz"
     h["SPECSYS"] = SPECSYS.get(frame, frame)
-    h.remove("RESTFRQ", ignore_missing=True)  # a plane's frequency, not a line's
+    if "RESTFRQ" not in (observed or {}):
+        h.remove("RESTFRQ", ignore_missing=True)  # a plane's frequency, not a line's
     good = np.isfinite(beams[:, 0])
     if good.any():
         mid = np.flatnonzero(good)[np.argsort(beams[good, 0])[good.sum() // 2]]
@@ -176,15 +178,82 @@ def _cube_header(plane_header: fits.Header, freqs: np.ndarray, beams: np.ndarray
     return h
 
 
+@dataclass
+class VelocityGrid:
+    """Planes of equal width in radio velocity about a rest frequency, in a frame.
+
+    Radio velocity v = c (nu_0 - nu) / nu_0 is linear in frequency, so the planes are equal in
+    frequency too: width nu_0 dv / c, edges at nu_0 (1 - k dv / c) for integer k (plane
+    centres at velocities (k + 1/2) dv).
+    """
+
+    rest_hz: float
+    resolution_kms: float
+    frame: str = "lsrk"
+
+
+def _velocity_planes(parts: Sequence[tuple[str, Any]], grid: VelocityGrid
+                     ) -> list[tuple[np.ndarray, float, float, dict[str, np.ndarray]]]:
+    """(channel indices, centre Hz, width Hz, {partition: (ntime, nidx) weight factors}) of
+    each plane of ``grid`` lying wholly inside the band at every integration.
+
+    A channel enters a plane with the fraction of its width (in the frame: its edges times
+    the integration's r(t), :func:`xstack.frames.partition_frame_ratios`) inside the plane, so
+    a plane is the overlap-weighted mean of the channels it covers and moves with the
+    Doppler track of topocentric data.
+    """
+    from xstack.frames import partition_frame_ratios
+    from xstack.spectral import SPEED_OF_LIGHT_KMS
+
+    ds0 = parts[0][1]
+    freq = np.asarray(ds0["frequency"].values, dtype=np.float64)
+    width = (np.abs(np.asarray(ds0["channel_width"].values, dtype=np.float64))
+             if "channel_width" in ds0 else None)
+    if width is None or not np.all(np.isfinite(width)) or np.any(width <= 0):
+        if freq.size < 2:
+            raise XstackError("a velocity-grid cube needs the channels' widths")
+        width = np.full(freq.size, abs(float(np.median(np.diff(freq)))))
+    lo, hi = freq - width / 2, freq + width / 2
+    ratios = {name: partition_frame_ratios(ds, grid.frame) for name, ds in parts}
+    r_all = np.concatenate(list(ratios.values()))
+    band_lo = float(np.max(r_all) * lo.min())
+    band_hi = float(np.min(r_all) * hi.max())
+    dnu = grid.rest_hz * grid.resolution_kms / SPEED_OF_LIGHT_KMS
+    # plane k: [nu_0 - (k + 1) dnu, nu_0 - k dnu]; wholly inside [band_lo, band_hi]
+    k_lo = math.ceil((grid.rest_hz - band_hi) / dnu - 1e-9)
+    k_hi = math.floor((grid.rest_hz - band_lo) / dnu + 1e-9) - 1
+    if k_hi < k_lo:
+        raise OptionError(f"no plane of {grid.resolution_kms:g} km/s lies wholly inside the "
+                          f"band ({band_lo / 1e6:.6f}-{band_hi / 1e6:.6f} MHz in "
+                          f"{grid.frame.upper()})", option="velocity_resolution")
+    planes = []
+    for k in range(k_hi, k_lo - 1, -1):  # increasing frequency
+        p_lo, p_hi = grid.rest_hz - (k + 1) * dnu, grid.rest_hz - k * dnu
+        factors: dict[str, np.ndarray] = {}
+        touched = np.zeros(freq.size, dtype=bool)
+        for name, r in ratios.items():
+            a, b = r[:, None] * lo[None, :], r[:, None] * hi[None, :]
+            overlap = np.clip(np.minimum(b, p_hi) - np.maximum(a, p_lo), 0.0, None)
+            factors[name] = overlap / (b - a)
+            touched |= np.any(overlap > 0, axis=0)
+        idx = np.flatnonzero(touched)
+        planes.append((idx, 0.5 * (p_lo + p_hi), dnu,
+                       {n: f[:, idx] for n, f in factors.items()}))
+    return planes
+
+
 def iter_planes(data: Any, *, channels: int = 1, partitions: str | Sequence[str] | None = None,
+                velocity_grid: VelocityGrid | None = None,
                 **image_kw: Any) -> Iterator[tuple[int, float, float, Any]]:
     """Yield ``(plane, centre_hz, width_hz, ImageResult or None)`` one plane at a time.
 
     Each plane is :func:`~xstack.imaging.image.make_image` of the selected partitions with
     their frequency axis cut to the plane's channels (None when the plane has no unflagged
-    data). Partitions must share one pointing and one frequency axis.
+    data). Partitions must share one pointing and one frequency axis. With ``velocity_grid``
+    the planes are those of :func:`_velocity_planes` (each channel's WEIGHT times the fraction
+    of it inside the plane) and ``channels`` must be 1.
     """
-    from xstack.imaging.image import group_pointings, make_image, select_partitions
+    from xstack.imaging.image import group_pointings, select_partitions
 
     if isinstance(channels, bool) or not isinstance(channels, (int, np.integer)) or channels < 1:
         raise OptionError(f"channels per plane must be an integer >= 1, got {channels!r}",
@@ -201,6 +270,18 @@ def iter_planes(data: Any, *, channels: int = 1, partitions: str | Sequence[str]
             raise XstackError(f"a cube needs partitions with one frequency axis; {name} differs "
                               f"from {parts[0][0]} (choose one spectral window with "
                               "partitions=)", option="partitions")
+    if velocity_grid is not None:
+        if channels != 1:
+            raise OptionError("channels per plane and a velocity grid do not go together",
+                              option="channels")
+        for i, (idx, centre, w, factors) in enumerate(_velocity_planes(parts, velocity_grid)):
+            sub = {}
+            for name, ds in parts:
+                part = ds.isel(frequency=idx)
+                fac = xr.DataArray(factors[name].astype(np.float32), dims=("time", "frequency"))
+                sub[name] = part.assign(WEIGHT=part["WEIGHT"] * fac)
+            yield i, centre, w, _plane_image(sub, image_kw)
+        return
     ds0 = parts[0][1]
     width = (np.asarray(ds0["channel_width"].values, dtype=np.float64)
              if "channel_width" in ds0 else np.full(freq.size, np.nan))
@@ -220,14 +301,20 @@ def iter_planes(data: Any, *, channels: int = 1, partitions: str | Sequence[str]
                               "channels with partitions=)")
     for i, (sl, centre, w) in enumerate(groups):
         sub = {name: ds.isel(frequency=sl) for name, ds in parts}
-        try:
-            with warnings.catch_warnings():
-                # the uv-coverage warnings of a plane repeat those of every other plane
-                warnings.simplefilter("ignore", UserWarning)
-                res = make_image(sub, **image_kw)
-        except NoDataError:
-            res = None
-        yield i, centre, w, res
+        yield i, centre, w, _plane_image(sub, image_kw)
+
+
+def _plane_image(sub: dict[str, Any], image_kw: dict[str, Any]) -> Any:
+    """make_image of one plane's data, or None when it has no unflagged data."""
+    from xstack.imaging.image import make_image
+
+    try:
+        with warnings.catch_warnings():
+            # the uv-coverage warnings of a plane repeat those of every other plane
+            warnings.simplefilter("ignore", UserWarning)
+            return make_image(sub, **image_kw)
+    except NoDataError:
+        return None
 
 
 def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, channels: int = 1,
@@ -236,8 +323,10 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
               partitions: str | Sequence[str] | None = None, nthreads: int = 0,
               progress: bool = False, autocorrelations: bool = False,
               out: str | os.PathLike | None = None, overwrite: bool = False,
-              keep: bool | None = None) -> CubeResult:
-    """Dirty Stokes I image cube of a store: one plane per ``channels`` channels.
+              keep: bool | None = None, velocity_resolution: float | None = None,
+              line_frequency: Any = None, frame: str = "lsrk") -> CubeResult:
+    """Dirty Stokes I image cube of a store: one plane per ``channels`` channels, or per
+    ``velocity_resolution`` km/s of radio velocity about ``line_frequency`` in ``frame``.
 
     Parameters
     ----------
@@ -248,6 +337,14 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
         As :func:`xstack.imaging.image.make_image`, per plane.
     channels
         Consecutive channels averaged (imaged together) per plane, >= 1.
+    velocity_resolution, line_frequency, frame
+        A velocity grid instead of channels: planes ``velocity_resolution`` km/s wide in
+        radio velocity about the rest frequency ``line_frequency`` (Hz or a line name), edges
+        at multiples of the resolution, in ``frame`` (``lsrk`` or ``bary``; topocentric data
+        are converted per integration). Each plane is the overlap-weighted mean of the
+        channels it covers (each channel's WEIGHT times the fraction of its width inside the
+        plane); only planes wholly inside the band at every integration are made. The FITS
+        axis is FREQ (linear in radio velocity) with RESTFRQ and SPECSYS of the frame.
     out
         FITS file to stream the cube to (one plane in memory at a time), written atomically.
     keep
@@ -266,9 +363,33 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
         check_output(out, overwrite)
     keep = out is None if keep is None else bool(keep)
     parts = [ds for _, ds in as_partitions(data)]
-    frame = frequency_frame(parts[0])
+    grid = None
+    if velocity_resolution is not None or line_frequency is not None:
+        from xstack import _vocabulary
+        from xstack.frames import frame_name
+        from xstack.spectral import rest_frequency
+
+        if velocity_resolution is None or line_frequency is None:
+            raise OptionError("a velocity-grid cube needs both velocity_resolution and "
+                              "line_frequency", option="velocity_resolution")
+        if not float(velocity_resolution) > 0:
+            raise OptionError(f"velocity_resolution must be > 0 km/s, got {velocity_resolution}",
+                              option="velocity_resolution")
+        if frame not in _vocabulary.LINE_FRAMES:
+            raise OptionError(f"unknown frame {frame!r} (use "
+                              f"{', '.join(_vocabulary.LINE_FRAMES)})", option="frame")
+        grid = VelocityGrid(float(rest_frequency(line_frequency)), float(velocity_resolution),
+                            frame)
+        cube_frame = frame_name(frame)
+    else:
+        cube_frame = frequency_frame(parts[0])
+    frame = cube_frame
     observed = observation_keywords(parts)
-    planes = iter_planes(data, channels=channels, partitions=partitions, size=size,
+    if grid is not None:
+        observed["RESTFRQ"] = (grid.rest_hz, "[Hz] rest frequency of the velocity grid")
+        observed["XSVRES"] = (grid.resolution_kms, "[km/s] radio velocity per plane")
+    planes = iter_planes(data, channels=channels, partitions=partitions, velocity_grid=grid,
+                         size=size,
                          cell_arcsec=cell_arcsec, weighting=weighting, robust=robust,
                          wterm=wterm, pbcor=pbcor, epsilon=epsilon, nthreads=nthreads,
                          progress=progress, autocorrelations=autocorrelations)
@@ -300,7 +421,7 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
                 template = res.header
                 shape = res.image.shape
                 if tmp is not None:
-                    n = _count_planes(data, channels, partitions)
+                    n = _count_planes(data, channels, partitions, grid)
                     # the axis length is fixed up front; CRVAL3/CDELT3 and the beams at the end
                     hdr = _cube_header(template, np.full(n, centre), np.array([res.beam]),
                                        frame, channels, observed)
@@ -349,10 +470,13 @@ def _primary(h: fits.Header) -> fits.Header:
     return out
 
 
-def _count_planes(data: Any, channels: int, partitions: Any) -> int:
+def _count_planes(data: Any, channels: int, partitions: Any,
+                  grid: VelocityGrid | None = None) -> int:
     from xstack.imaging.image import select_partitions
 
     parts = select_partitions(data, partitions, allow_mosaic=True)
+    if grid is not None:
+        return len(_velocity_planes(parts, grid))
     return int(parts[0][1].sizes["frequency"]) // int(channels)
 
 

@@ -118,26 +118,12 @@ class LineStackResult(Result):
 # --- per partition ---------------------------------------------------------------------------
 
 def _frame_ratios(ds: xr.Dataset, frame: str) -> np.ndarray:
-    """Per time of ``ds``, nu_frame / nu_data (1 when the data are in ``frame`` already)."""
-    from xstack.frames import frame_ratio, frequency_frame
+    """Per time of ``ds``, nu_frame / nu_data (1 when the data are in ``frame`` already;
+    :func:`xstack.frames.partition_frame_ratios`: TOPO converted towards the pointing centre,
+    whose correction serves every target of it to < 1e-6 of nu for a 0.5 degree field)."""
+    from xstack.frames import partition_frame_ratios
 
-    have = frequency_frame(ds)
-    want = frame.upper()
-    times = np.asarray(ds["time"].values, dtype=np.float64)
-    if have == want:
-        return np.ones(times.size)
-    if have != "TOPO":
-        raise OptionError(f"the data's frequencies are in frame {have}, not {want}: only "
-                          "TOPO data are converted (the frame option: stack in "
-                          f"{have.lower()} if it is one of {', '.join(LINE_FRAMES)})",
-                          option="frame")
-    ra0, dec0 = (float(x) for x in ds.attrs["phase_center"])
-    # the array centre: the antennas' spread changes r by < 1e-10
-    location = np.asarray(ds["ANTENNA_POSITION"].values, dtype=np.float64).mean(axis=0)
-    # the pointing centre's correction for every target: across a primary beam the Doppler
-    # correction changes by < v_earth * theta (< 1e-6 of nu for a 0.5 degree field)
-    return frame_ratio(times, np.degrees(ra0), np.degrees(dec0), location, to_frame=want,
-                       from_frame="TOPO")
+    return partition_frame_ratios(ds, frame)
 
 
 def _block_line(vis, weight, flag, uvw, ratio_t, params, *, layout, frequency, edges, pol_mask,

@@ -305,3 +305,33 @@ def test_compute_passes_other_values_through():
     got = xstack.compute(arr, 5)
     np.testing.assert_array_equal(got[0], np.arange(4))
     assert got[1] == 5
+
+
+def test_lazy_with_out_at_a_url_makes_each_chunk_once(store, monkeypatch):
+    """On a store written in place (an object store; memory:// here) the lazy write is one
+    task per chunk of its own: the stacked chunk and its flux sums are made once, not once
+    for the store and once for the sums (dask's store(compute=False) gives arrays, which a
+    compute fuses with the other results' arrays)."""
+    path, _ = store
+    tree = open_store(path)
+    calls = []
+    real = stack_module._block_stack_and_sums
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(stack_module, "_block_stack_and_sums", counted)
+    n_chunks = len(tree["p"]["VISIBILITY"].chunks[0])
+    with dask.config.set(scheduler="sync"):
+        eager = xstack.stack_uv(tree, _cat(2, 5), out="memory://lazy-url/e.zarr")
+        assert len(calls) == n_chunks
+        calls.clear()
+        a = xstack.stack_uv(tree, _cat(2, 5), compute=False, out="memory://lazy-url/a.zarr")
+        b = xstack.stack_uv(tree, _cat(3, 7), compute=False)
+        ra, _rb = xstack.compute(a, b)
+    assert len(calls) == n_chunks
+    assert ra.flux_jy == eager.flux_jy
+    got = open_store("memory://lazy-url/a.zarr")["p"]["VISIBILITY"].values
+    ref = open_store("memory://lazy-url/e.zarr")["p"]["VISIBILITY"].values
+    np.testing.assert_array_equal(got, ref)

@@ -743,6 +743,7 @@ def _store_lazy(root: Any, nodes: Mapping[str, xr.Dataset]) -> Any:
     :func:`write_skeleton` created under ``root`` (opened from its consolidated metadata:
     no request per array, where xarray's ``to_zarr`` makes several on an object store).
     Each variable is encoded as xarray's ``to_zarr`` encodes it, so the chunks are the same."""
+    import dask
     import dask.array as da
     from xarray.backends.zarr import encode_zarr_variable
 
@@ -753,7 +754,19 @@ def _store_lazy(root: Any, nodes: Mapping[str, xr.Dataset]) -> Any:
                 encoded = encode_zarr_variable(value, name=var, zarr_format=3)
                 sources.append(encoded.data)
                 targets.append(root[f"{name}/{var}"])
-    return da.store(sources, targets, lock=False, compute=False)
+    # dask's store(compute=False) gives arrays, which a compute beside other arrays would
+    # fuse with them: a task shared with another result (a stack's chunk and its flux sums)
+    # then runs once for each. One Delayed of the store's chunks, its graph optimised now,
+    # keeps it a task of its own, as xarray's to_zarr(compute=False) on a local disk.
+    stored = da.store(sources, targets, lock=False, compute=False)
+    stored = stored if isinstance(stored, (tuple, list)) else (stored,)
+    parts = [d for a in stored for d in a.to_delayed(optimize_graph=True).ravel()]
+    return dask.delayed(_all_stored, pure=True)(*parts)
+
+
+def _all_stored(*_: Any) -> None:
+    """The end of a store's chunk writes (:func:`_store_lazy`)."""
+    return None
 
 
 def new_store_attrs(partitions: Mapping[str, xr.Dataset], kind: str,

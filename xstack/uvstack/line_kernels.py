@@ -27,9 +27,14 @@ covariance terms of 256 (row, channel) visibilities are added at once as dot pro
 contiguous rows (:func:`_syrk_upper`): C costs ~nbin^2 multiply-adds per (row, channel),
 the rest ~2 per (target, channel) reached.
 
+Rows of one frame ratio are walked in batches (up to :data:`_MAX_ROWS`), channel by channel:
+the phasors of the batch's rows advance together and each overlap weight is read once per
+batch for all its rows, so the weight tables (~1 MB for 1000 targets and 256 channels) are
+streamed from cache once per batch, not once per row (1.8x faster at 32 rows than row by row).
+
 The rows are cut into blocks of :data:`xstack.uvstack.kernels.SUM_BLOCK_ROWS`, each block
-summed serially and the blocks' sums added in block order, so the sums are the same to the
-last bit on any number of threads.
+summed serially and the blocks' sums added in block order (the batch size depends on the
+number of targets only), so the sums are the same to the last bit on any number of threads.
 """
 
 from __future__ import annotations
@@ -219,12 +224,19 @@ def _syrk_upper(at, ncol, acc, base, nbin):
 #: (row, channel) visibilities whose covariance terms are added in one batch (x2: the real
 #: and imaginary parts of Q are two columns each)
 _BATCH = 256
+#: Rows (of one frame ratio) walked together channel by channel: each channel's overlap
+#: weights (~1 MB per frame ratio for 1000 targets and 256 channels) are then read from cache
+#: once per batch instead of once per row: 32 rows made the kernel 1.8x faster than 1
+#: (1000 targets, 256 channels; 8: 1.4x, 64: no further gain). Fewer when the per-target
+#: arrays of a batch (5 x 8 bytes per target and row, per thread) would pass _ROWS_BYTES.
+_MAX_ROWS = 32
+_ROWS_BYTES = 8 * 2**20
 
 
 @numba.njit(parallel=True, fastmath={"contract"}, cache=True)
 def _line_sums_numba(vis, weight, flag, uvw, ratio, order, lo_s, hi_s, fc_s, step, even, reseed,
                      l, m, n1, centre, coef_s, wk, e0, dv, nbin, monotone, pol_mask, uv_mask,
-                     has_uv, write, out_num, out_den, out_var, group):
+                     has_uv, write, out_num, out_den, out_var, group, nrows):
     nrow, _nchan, npol = vis.shape
     nchan = order.shape[0]
     ntgt = centre.shape[0]
@@ -238,8 +250,9 @@ def _line_sums_numba(vis, weight, flag, uvw, ratio, order, lo_s, hi_s, fc_s, ste
         part = np.zeros((g1 - g0, nsum))
         for blk in numba.prange(g0, g1):
             acc = part[blk - g0]
-            qr = np.zeros(nbin)
-            qi = np.zeros(nbin)
+            # per batch of rows (up to nrows, one frame ratio): Q_j of each row of the batch
+            qr = np.zeros((nbin, nrows))
+            qi = np.zeros((nbin, nrows))
             # the batch of sqrt(w) Q columns whose outer products make the covariance
             at = np.zeros((nbin, 2 * _BATCH))
             col = 0
@@ -254,16 +267,26 @@ def _line_sums_numba(vis, weight, flag, uvw, ratio, order, lo_s, hi_s, fc_s, ste
             dw = np.zeros((nchan, nbin))
             jlo = np.zeros(nchan, dtype=np.int64)
             jhi = np.full(nchan, -1, dtype=np.int64)
-            # per target: path difference of the row, its phasor at the channel last
-            # processed and the channel-step phasor (the recurrence of the continuum kernel)
-            dk = np.empty(ntgt)
-            zr = np.zeros(ntgt)
-            zi = np.zeros(ntgt)
-            sr = np.empty(ntgt)
-            si = np.empty(ntgt)
+            # per target and row of the batch: path difference, the phasor at the channel
+            # last processed and the channel-step phasor (the continuum kernel's recurrence)
+            dk = np.empty((ntgt, nrows))
+            zr = np.zeros((ntgt, nrows))
+            zi = np.zeros((ntgt, nrows))
+            sr = np.empty((ntgt, nrows))
+            si = np.empty((ntgt, nrows))
+            # per row of the batch: the flux's weighted sums of the current channel
+            wsum_b = np.zeros(nrows)
+            vwr_b = np.zeros(nrows)
+            vwi_b = np.zeros(nrows)
+            nuse_b = np.zeros(nrows, dtype=np.int64)
             last_r = np.nan
-            for row in range(blk * SUM_BLOCK_ROWS, min(nrow, (blk + 1) * SUM_BLOCK_ROWS)):
+            row_end = min(nrow, (blk + 1) * SUM_BLOCK_ROWS)
+            row = blk * SUM_BLOCK_ROWS
+            while row < row_end:
                 r = ratio[row]
+                nrb = 1
+                while nrb < nrows and row + nrb < row_end and ratio[row + nrb] == r:
+                    nrb += 1
                 if r != last_r:
                     # which targets and bins each channel reaches, and the overlaps, change
                     # with the frame ratio only
@@ -271,48 +294,57 @@ def _line_sums_numba(vis, weight, flag, uvw, ratio, order, lo_s, hi_s, fc_s, ste
                     klo, khi, kb0, kn, koff, ew, dw, jlo, jhi = _bin_tables(
                         r, lo_s, hi_s, centre, coef_s, wk, e0, dv, nbin, s0, s1)
                     last_r = r
-                u = uvw[row, 0]
-                v = uvw[row, 1]
-                w = uvw[row, 2]
-                for k in range(ntgt):
-                    dk[k] = u * l[k] + v * m[k] + w * n1[k]
+                for b in range(nrb):
+                    u = uvw[row + b, 0]
+                    v = uvw[row + b, 1]
+                    w = uvw[row + b, 2]
+                    for k in range(ntgt):
+                        dk[k, b] = u * l[k] + v * m[k] + w * n1[k]
                 if even:
                     for k in range(ntgt):
-                        sr[k], si[k] = cis_minus_turns(dk[k] * step)
+                        for b in range(nrb):
+                            sr[k, b], si[k, b] = cis_minus_turns(dk[k, b] * step)
                 prev_s = -2
                 prev_khi = 0
                 for s in range(nchan):
                     if jhi[s] < 0:
                         continue
                     ch = order[s]
-                    # the flux's correlations of this visibility, and whether any is usable
-                    in_uv = (not has_uv) or uv_mask[row, ch]
-                    wsum = 0.0
-                    vwr = 0.0
-                    vwi = 0.0
-                    nuse = 0
-                    any_write = False
-                    for p in range(npol):
-                        if flag[row, ch, p]:
-                            continue
-                        wp = np.float64(weight[row, ch, p])
-                        if not wp > 0:
-                            continue
-                        vr = np.float64(vis[row, ch, p].real)
-                        vi = np.float64(vis[row, ch, p].imag)
-                        if not (math.isfinite(vr) and math.isfinite(vi)):
-                            continue
-                        any_write = True
-                        if in_uv and pol_mask[p]:
-                            wsum += wp
-                            vwr += wp * vr
-                            vwi += wp * vi
-                            nuse += 1
-                    if nuse == 0 and not (write and any_write):
+                    # each row's flux correlations of this channel, and whether the batch
+                    # has any visibility to use here
+                    needed = False
+                    for b in range(nrb):
+                        in_uv = (not has_uv) or uv_mask[row + b, ch]
+                        wsum = 0.0
+                        vwr = 0.0
+                        vwi = 0.0
+                        nuse = 0
+                        for p in range(npol):
+                            if flag[row + b, ch, p]:
+                                continue
+                            wp = np.float64(weight[row + b, ch, p])
+                            if not wp > 0:
+                                continue
+                            vr = np.float64(vis[row + b, ch, p].real)
+                            vi = np.float64(vis[row + b, ch, p].imag)
+                            if not (math.isfinite(vr) and math.isfinite(vi)):
+                                continue
+                            needed = needed or write
+                            if in_uv and pol_mask[p]:
+                                wsum += wp
+                                vwr += wp * vr
+                                vwi += wp * vi
+                                nuse += 1
+                        wsum_b[b] = wsum
+                        vwr_b[b] = vwr
+                        vwi_b[b] = vwi
+                        nuse_b[b] = nuse
+                        needed = needed or nuse > 0
+                    if not needed:
                         continue
-                    # the phasors of the targets this channel reaches: advanced from the
-                    # previous channel where it was processed, exactly every reseed channels
-                    # and for targets entering the range
+                    # the phasors of the targets this channel reaches, for every row of the
+                    # batch: advanced from the previous channel where it was processed,
+                    # exactly every reseed channels and for targets entering the range
                     f = fc_s[s]
                     ka = klo[s]
                     kb = khi[s]
@@ -320,56 +352,67 @@ def _line_sums_numba(vis, weight, flag, uvw, ratio, order, lo_s, hi_s, fc_s, ste
                     if even and s % reseed != 0 and prev_s == s - 1:
                         kseed = max(ka, min(kb, prev_khi))
                         for k in range(ka, kseed):
-                            a_r = zr[k] * sr[k] - zi[k] * si[k]
-                            zi[k] = zr[k] * si[k] + zi[k] * sr[k]
-                            zr[k] = a_r
+                            for b in range(nrb):
+                                a_r = zr[k, b] * sr[k, b] - zi[k, b] * si[k, b]
+                                zi[k, b] = zr[k, b] * si[k, b] + zi[k, b] * sr[k, b]
+                                zr[k, b] = a_r
                     for k in range(kseed, kb):
-                        zr[k], zi[k] = cis_minus_turns(dk[k] * f)
+                        for b in range(nrb):
+                            zr[k, b], zi[k, b] = cis_minus_turns(dk[k, b] * f)
                     prev_s = s
                     prev_khi = kb
                     j_lo = jlo[s]
                     j_hi = jhi[s]
+                    # Q_j of every row of the batch: each weight W_k o / A_k read once for the
+                    # batch (the tables are streamed from cache once per batch, not per row)
                     for j in range(j_lo, j_hi + 1):
-                        # Q_j: the targets reaching bin j are contiguous (few per bin: a
-                        # plain loop, no call)
                         off = koff[s, j]
                         k0 = kb0[s, j]
-                        a_r = 0.0
-                        a_i = 0.0
+                        for b in range(nrb):
+                            qr[j, b] = 0.0
+                            qi[j, b] = 0.0
                         for i in range(kn[s, j]):
-                            a_r += ew[off + i] * zr[k0 + i]
-                            a_i += ew[off + i] * zi[k0 + i]
-                        qr[j] = a_r
-                        qi[j] = a_i
-                    if nuse > 0:
-                        sw = math.sqrt(wsum)
-                        for ja in range(j_lo, j_hi + 1):
-                            acc[ja] += vwr * qr[ja] - vwi * qi[ja]
-                            acc[nbin + ja] += wsum * dw[s, ja]
-                            at[ja, col] = sw * qr[ja]
-                            at[ja, col + 1] = sw * qi[ja]
-                        col += 2
-                        if col == 2 * _BATCH:
-                            _syrk_upper(at, col, acc, cbase, nbin)
-                            at[:, :] = 0.0
-                            col = 0
-                        acc[nsum - 1] += nuse
-                    if write:
-                        for p in range(npol):
-                            if flag[row, ch, p]:
-                                continue
-                            wp = np.float64(weight[row, ch, p])
-                            if not wp > 0:
-                                continue
-                            vr = np.float64(vis[row, ch, p].real)
-                            vi = np.float64(vis[row, ch, p].imag)
-                            if not (math.isfinite(vr) and math.isfinite(vi)):
-                                continue
+                            ee = ew[off + i]
+                            for b in range(nrb):
+                                qr[j, b] += ee * zr[k0 + i, b]
+                                qi[j, b] += ee * zi[k0 + i, b]
+                    for b in range(nrb):
+                        if nuse_b[b] > 0:
+                            wsum = wsum_b[b]
+                            vwr = vwr_b[b]
+                            vwi = vwi_b[b]
+                            sw = math.sqrt(wsum)
                             for ja in range(j_lo, j_hi + 1):
-                                out_num[row, ja, p] += wp * complex(vr * qr[ja] - vi * qi[ja],
-                                                                    vr * qi[ja] + vi * qr[ja])
-                                out_den[row, ja, p] += wp * dw[s, ja]
-                                out_var[row, ja, p] += wp * (qr[ja] * qr[ja] + qi[ja] * qi[ja])
+                                acc[ja] += vwr * qr[ja, b] - vwi * qi[ja, b]
+                                acc[nbin + ja] += wsum * dw[s, ja]
+                                at[ja, col] = sw * qr[ja, b]
+                                at[ja, col + 1] = sw * qi[ja, b]
+                            col += 2
+                            if col == 2 * _BATCH:
+                                _syrk_upper(at, col, acc, cbase, nbin)
+                                at[:, :] = 0.0
+                                col = 0
+                            acc[nsum - 1] += nuse_b[b]
+                        if write:
+                            rw = row + b
+                            for p in range(npol):
+                                if flag[rw, ch, p]:
+                                    continue
+                                wp = np.float64(weight[rw, ch, p])
+                                if not wp > 0:
+                                    continue
+                                vr = np.float64(vis[rw, ch, p].real)
+                                vi = np.float64(vis[rw, ch, p].imag)
+                                if not (math.isfinite(vr) and math.isfinite(vi)):
+                                    continue
+                                for ja in range(j_lo, j_hi + 1):
+                                    out_num[rw, ja, p] += wp * complex(
+                                        vr * qr[ja, b] - vi * qi[ja, b],
+                                        vr * qi[ja, b] + vi * qr[ja, b])
+                                    out_den[rw, ja, p] += wp * dw[s, ja]
+                                    out_var[rw, ja, p] += wp * (qr[ja, b] * qr[ja, b]
+                                                                + qi[ja, b] * qi[ja, b])
+                row += nrb
             if col > 0:
                 _syrk_upper(at, col, acc, cbase, nbin)
         for b in range(g1 - g0):  # in block order, however prange shared the blocks out
@@ -498,6 +541,8 @@ def line_sums(vis, weight, flag, uvw, ratio, layout: ChannelLayout, l, m, n_minu
         layout.freq, float(np.abs(uvw).max(initial=0.0)),
         float(max(np.abs(l).max(), np.abs(m).max(), np.abs(n_minus_1).max())))
     group = max(1, min(64, _GROUP_BYTES // (8 * (2 * nbin + nbin * nbin + 1))))
+    # rows walked together: set by the number of targets only, never by the thread count
+    nrows = max(1, min(_MAX_ROWS, _ROWS_BYTES // (40 * max(1, np.size(l)))))
     args = (vis, np.asarray(weight), np.asarray(flag, dtype=bool),
             np.ascontiguousarray(uvw, dtype=np.float64),
             np.ascontiguousarray(ratio, dtype=np.float64), layout.order, layout.lo, layout.hi,
@@ -505,7 +550,8 @@ def line_sums(vis, weight, flag, uvw, ratio, layout: ChannelLayout, l, m, n_minu
             *(np.ascontiguousarray(a, dtype=np.float64)
                          for a in (l, m, n_minus_1, centre_hz)),
             coef_s, np.ascontiguousarray(position_weight, dtype=np.float64), float(edges[0]),
-            dv, nbin, layout.monotone, pm, um, has_uv, bool(write), num, den, var, group)
+            dv, nbin, layout.monotone, pm, um, has_uv, bool(write), num, den, var, group,
+            int(nrows))
     cap_numba_threads()
     with _KERNEL_LOCK:
         sums = _line_sums_numba(*args)

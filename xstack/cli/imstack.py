@@ -250,22 +250,12 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
                    "moment0_png": str(names["mom0"]) if "mom0" in names else None,
                    "seconds": round(seconds, 3)})
         return 0
-    from xstack.cli._output import count, figure
+    from xstack.cli._output import count
     from xstack.cli._output import result as say_result
+    from xstack.cli.linestack import continuum_text, fit_text
 
-    if math.isfinite(fit.integrated_flux_jy_kms):
-        w = fit.window_kms
-        value = figure(fit.integrated_flux_jy_kms, fit.integrated_flux_err_jy_kms, "Jy km/s")
-        line = f"line integral {value} over {w[0]:.4g}..{w[1]:.4g} km/s"
-    else:
-        line = "line integral n/a (no line fitted, no --line-window)"
-    if fit.converged:
-        line += (f"; centre {figure(fit.centre_kms, fit.centre_err_kms, 'km/s')}, FWHM "
-                 f"{figure(fit.fwhm_kms, fit.fwhm_err_kms, 'km/s')}")
-    say_result(f"{line}; from {count(res.n_positions, 'position')} ({args.method})")
+    say_result(f"{fit_text(fit)}; from {count(res.n_positions, 'position')} ({args.method})")
     if baseline is not None:
-        from xstack.cli.linestack import continuum_text
-
         say_result(f"  continuum subtracted: {continuum_text(baseline)}")
     say_result("  wrote " + ", ".join([out, *map(str, names.values())]))
     return 0

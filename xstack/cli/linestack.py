@@ -307,18 +307,9 @@ def _run(args: argparse.Namespace, plotter: Any) -> int:
                    "spectrum_png": None if png is None else str(png),
                    "seconds": round(seconds, 3)})
         return 0
-    from xstack.cli._output import count, detail, figure, result
+    from xstack.cli._output import count, detail, result
 
-    if math.isfinite(fit.integrated_flux_jy_kms):
-        w = fit.window_kms
-        value = figure(fit.integrated_flux_jy_kms, fit.integrated_flux_err_jy_kms, "Jy km/s")
-        line = f"line integral {value} over {w[0]:.4g}..{w[1]:.4g} km/s"
-    else:
-        line = "line integral n/a (no line fitted, no --line-window)"
-    if fit.converged:
-        line += (f"; centre {figure(fit.centre_kms, fit.centre_err_kms, 'km/s')}, FWHM "
-                 f"{figure(fit.fwhm_kms, fit.fwhm_err_kms, 'km/s')}, peak "
-                 f"{figure(fit.peak_jy, fit.peak_err_jy, 'Jy')}")
+    line = fit_text(fit, peak=True)
     result(f"{line}; from {count(res.n_positions, 'position')}, "
            f"{count(res.n_visibilities, 'visibility')}")
     if baseline is not None:
@@ -329,6 +320,25 @@ def _run(args: argparse.Namespace, plotter: Any) -> int:
            f"{res.frame}, weighting {args.weighting}, primary beam {args.primary_beam}; "
            f"fit chi2 {fit.chi2:.4g} for {fit.dof} degrees of freedom")
     return 0
+
+
+def fit_text(fit: Any, peak: bool = False) -> str:
+    """The line integral over its window and, for a converged fit, the centre, FWHM (and
+    peak) with errors: the first result line of linestack and of imstack --line-frequency."""
+    from xstack.cli._output import figure
+
+    if math.isfinite(fit.integrated_flux_jy_kms):
+        w = fit.window_kms
+        value = figure(fit.integrated_flux_jy_kms, fit.integrated_flux_err_jy_kms, "Jy km/s")
+        line = f"line integral {value} over {w[0]:.4g}..{w[1]:.4g} km/s"
+    else:
+        line = "line integral n/a (no line fitted, no --line-window)"
+    if fit.converged:
+        line += (f"; centre {figure(fit.centre_kms, fit.centre_err_kms, 'km/s')}, FWHM "
+                 f"{figure(fit.fwhm_kms, fit.fwhm_err_kms, 'km/s')}")
+        if peak:
+            line += f", peak {figure(fit.peak_jy, fit.peak_err_jy, 'Jy')}"
+    return line
 
 
 def continuum_text(baseline: Any) -> str:

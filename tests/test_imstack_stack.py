@@ -18,7 +18,7 @@ from astropy.io import fits
 
 from xstack.beams import standard_beam
 from xstack.coords import angular_separation
-from xstack.errors import XstackError
+from xstack.errors import XstackError, XstackWarning
 from xstack.imstack import kernels
 from xstack.imstack.io import read_stack_fits
 from xstack.imstack.stack import stack_images
@@ -236,15 +236,53 @@ def test_lowfreq_filter_removes_a_background_offset(fields, tmp_path):
     assert raw.flux_jy == pytest.approx(1.3, abs=5e-3)
     filt = stack_images(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
                    filter_lowfreq=1)
-    # zeroing the DC cell subtracts the stamp mean: background + the source's mean over the stamp
-    expected = raw.flux_jy - np.mean(raw.stacked.values)
-    assert filt.flux_jy == pytest.approx(expected, abs=1e-9)
-    assert abs(filt.flux_jy - (1.0 - np.mean(raw.psf_stamp.values) * 1.0)) < 0.02
+    # zeroing the DC cell subtracts the stamp mean: background + the source's mean over the
+    # stamp; the source's share is the PSF's mean, which the filter response gives back
+    response = 1 - np.mean(raw.psf_stamp.values) / float(raw.psf_stamp.values[32, 32])
+    assert filt.filter_response == pytest.approx(response, rel=1e-12)
     assert float(filt.psf_stamp.values[32, 32]) == pytest.approx(1 - np.mean(raw.psf_stamp.values))
+    expected = raw.flux_jy - np.mean(raw.stacked.values)
+    assert filt.flux_jy * filt.filter_response == pytest.approx(expected, abs=1e-9)
+    assert filt.flux_jy == pytest.approx(1.0, abs=0.02)      # the background gone, the flux kept
+    assert filt.to_dict()["filter_response"] == pytest.approx(response, rel=1e-12)
     # a uv distance: one Fourier cell of a 64 x 0.5" stamp is 6446 lambda
     by_q = stack_images(tmp_path / "bg.fits", pos, stamp_size=64, weighting="none", subpixel="fourier",
                    filter_lowfreq="1klambda")
     assert by_q.flux_jy == pytest.approx(filt.flux_jy, abs=1e-12)
+
+
+@pytest.mark.parametrize("spec", ["20klambda", 5])
+def test_lowfreq_filter_keeps_a_point_source_flux(tmp_path, spec):
+    """A filter that removes a large share of the peak (here 10-40 %) must not bias the flux:
+    noiseless isolated sources of 1 Jy (stamps free of neighbours) come back at 1 Jy, through
+    the filter response of the stacked PSF; the filtered peak alone is lower by that share."""
+    rng = np.random.default_rng(12)
+    cell = 0.5
+    path, ra, dec, _, _ = make_field(tmp_path, rng, cell, beam=BEAM, noise=0.0, psf=True,
+                                     n_side=6, spacing=80)
+    pos = np.c_[ra, dec]
+    for subpixel in (False, "fourier"):
+        raw = stack_images(path, pos, stamp_size=64, weighting="none", subpixel=subpixel)
+        filt = stack_images(path, pos, stamp_size=64, weighting="none", subpixel=subpixel,
+                            filter_lowfreq=spec)
+        assert 0.5 < filt.filter_response < 0.95
+        assert filt.flux_jy == pytest.approx(raw.flux_jy, rel=1e-4)   # 10-40 % without the response
+        peak = float(filt.stacked.values[32, 32])
+        assert peak == pytest.approx(filt.flux_jy * filt.filter_response, rel=1e-12)
+        assert peak == pytest.approx(raw.flux_jy * filt.filter_response, rel=1e-4)
+        assert filt.flux_err_jy == pytest.approx(raw.flux_err_jy / filt.filter_response, rel=1e-9)
+    assert raw.filter_response is None
+
+
+def test_lowfreq_filter_without_psf_warns(tmp_path):
+    rng = np.random.default_rng(13)
+    path, ra, dec, _, _ = make_field(tmp_path, rng, 0.5, beam=BEAM, noise=0.0, psf=False,
+                                     n_side=4, spacing=80)
+    with pytest.warns(XstackWarning, match="filter_lowfreq without a PSF") as rec:
+        res = stack_images(path, np.c_[ra, dec], stamp_size=64, weighting="none",
+                           filter_lowfreq=5)
+    assert any(getattr(r.message, "option", None) == "psf" for r in rec)
+    assert res.filter_response is None and res.flux_jy < 0.95     # the bare filtered peak
 
 
 def test_outputs_layout_and_roundtrip(fields, tmp_path):

@@ -275,6 +275,13 @@ def test_type7_fits_sizes(tmp_path):
     assert filtered.shape == stamp.shape
     assert abs(filtered.sum()) < 1e-9 * np.abs(filtered).sum()
     assert not np.allclose(filtered, stamp)
+    # the recorded filtered flux is the filtered stamp's center divided by the filter
+    # response, the share of a point source's peak the filter keeps (well below 1 at 5000 m)
+    first = next(r for r in lines if r["seed"] == 0)
+    c = filtered.shape[0] // 2
+    assert 0.3 < first["image_filter_response"] < 0.95
+    assert first["image_flux_filtered_jy"] == pytest.approx(
+        filtered[c, c] / first["image_filter_response"], rel=1e-9)
 
 
 def test_records_of_types_1_2_have_no_figure_extras(first):

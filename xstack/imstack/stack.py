@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ from xstack._inputs import Positions
 from xstack._progress import progress_iter
 from xstack._result import Result, json_ready
 from xstack.coords import SPEED_OF_LIGHT, parse_distance
-from xstack.errors import NoDataError, OptionError, XstackError
+from xstack.errors import NoDataError, OptionError, XstackError, XstackWarning
 from xstack.imstack import kernels
 from xstack.imstack.io import (
     BeamConvention,
@@ -76,7 +77,9 @@ class ImstackResult(Result):
         Value of the stacked stamp at its central pixel (the stacking position) -- the paper's
         "peak" for point sources, without the upward bias of taking a noisy maximum. With
         nearest-pixel alignment the stack is smeared by the pixelisation
-        (see ``pixelisation_factor``); with sub-pixel alignment it is not.
+        (see ``pixelisation_factor``); with sub-pixel alignment it is not. With
+        ``filter_lowfreq`` and a PSF, the filtered central value divided by
+        ``filter_response``, so that it stays a flux density.
     flux_err_jy
         Noise of ``flux_jy`` propagated from the stamps' local noise sigma_k and weights:
         sqrt(sum W_k^2 sigma_k^2) / sum W_k (paper eq. 5 for W_k = 1/sigma_k^2), times
@@ -88,6 +91,12 @@ class ImstackResult(Result):
         weighted mean of each stamp's PSF, including for nearest-pixel alignment the
         smearing by each position's sub-pixel offset (its central value is then the expected
         pixelisation factor of the dirty beam).
+    filter_response
+        With ``filter_lowfreq`` and a PSF: the filtered PSF stamp's central value over the
+        unfiltered one, the fraction of a point source's peak that the filter keeps (0.62 for
+        VLA A at 1.4 GHz with a 5000 m cut); ``flux_jy`` and ``flux_err_jy`` are divided by
+        it. None without a filter or a PSF (then ``flux_jy`` is the filtered peak, with a
+        warning).
     options
         The options used (:meth:`ImstackOptions.to_dict`), plus ``n_images`` and the
         ``mask_radius_arcsec`` used.
@@ -112,6 +121,7 @@ class ImstackResult(Result):
     pixel_arcsec: tuple[float, float] = (float("nan"), float("nan"))
     pixelisation_factor: float | None = None
     filter_lowfreq: Any = None
+    filter_response: float | None = None
     skipped_rows: list[int] = field(default_factory=list)
     outputs: dict[str, str] = field(default_factory=dict)
     primary_beam: list[dict[str, Any]] = field(default_factory=list)
@@ -139,6 +149,7 @@ class ImstackResult(Result):
             "pixelisation_factor": num(self.pixelisation_factor),
             "psf": self.psf_stamp is not None,
             "filter_lowfreq": self.filter_lowfreq,
+            "filter_response": num(self.filter_response),
             "skipped_rows": list(self.skipped_rows),
             "outputs": dict(self.outputs),
             "flux_convention": "primary-beam corrected",
@@ -527,6 +538,7 @@ class _Measured:
     stamp_rms: float
     peak: float
     pixfac: float | None
+    filter_response: float | None = None   # filtered / unfiltered PSF peak (filter_lowfreq)
 
 
 def _load(images: ImageSource | Sequence[ImageSource], positions: Any,
@@ -704,12 +716,26 @@ def _compute(plan: _Plan, options: ImstackOptions) -> _Measured:
     psf_stack = _psf_stack(plan.inputs.infos, plan.psfs, options.stamp_size, img_idx, frac_x,
                            frac_y, w, options.subpixel)
     # the low-spatial-frequency filter (paper §5.3), on the stack and its PSF alike
+    response = None
     if plan.fmask is not None:
         stacked = kernels.lowfreq_filter(stacked, plan.fmask)
         if psf_stack is not None:
+            unfiltered_peak = float(psf_stack[c, c])
             psf_stack = kernels.lowfreq_filter(psf_stack, plan.fmask)
+            # the filter removes the short spacings' share of every point source's peak too
+            # (a third of it at 5000 m for VLA A): the filtered PSF's peak relative to the
+            # unfiltered one is that share, so the filtered peak divided by it is a flux again
+            response = float(psf_stack[c, c]) / unfiltered_peak
+        else:
+            warnings.warn(XstackWarning(
+                "filter_lowfreq without a PSF: flux_jy is the filtered peak, lower than the "
+                "sources' flux by the filter's unknown response; give the PSF image (psf=)",
+                option="psf"), stacklevel=2)
 
     flux = float(stacked[c, c])
+    if response is not None and response > 0:
+        flux /= response
+        flux_err /= response
     outside = stacked[~plan.mask]
     stamp_rms = float(np.nanstd(outside)) if np.isfinite(outside).sum() > 1 else float("nan")
     inner = np.where(plan.mask, stacked, np.nan)
@@ -721,7 +747,8 @@ def _compute(plan: _Plan, options: ImstackOptions) -> _Measured:
                                              plan.pix_y)
     return _Measured(stamps=stamps, rows=rows, img_idx=img_idx, frac_x=frac_x, frac_y=frac_y,
                      pb_k=pb_k, sigma=sigma, w=w, stacked=stacked, wsum=wsum, psf_stack=psf_stack,
-                     flux=flux, flux_err=flux_err, stamp_rms=stamp_rms, peak=peak, pixfac=pixfac)
+                     flux=flux, flux_err=flux_err, stamp_rms=stamp_rms, peak=peak, pixfac=pixfac,
+                     filter_response=response)
 
 
 def _assemble(plan: _Plan, m: _Measured, options: ImstackOptions) -> ImstackResult:
@@ -769,7 +796,8 @@ def _assemble(plan: _Plan, m: _Measured, options: ImstackOptions) -> ImstackResu
         method=options.method, weighting=options.weighting, subpixel=options.subpixel,
         beam_arcsec=plan.beam, mask_radius_arcsec=plan.radius,
         pixel_arcsec=(plan.pix_x, plan.pix_y), pixelisation_factor=m.pixfac,
-        filter_lowfreq=options.filter_lowfreq, skipped_rows=[int(k) + 1 for k in plan.unseen],
+        filter_lowfreq=options.filter_lowfreq, filter_response=m.filter_response,
+        skipped_rows=[int(k) + 1 for k in plan.unseen],
         primary_beam=[dict(c.to_dict(), image=info.name) for c, info in zip(plan.convs, infos)],
         options=used)
 

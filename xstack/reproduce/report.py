@@ -688,10 +688,17 @@ def write_report(outdir: str | os.PathLike, out_md: str | os.PathLike | None = N
                        "has `uv_flux_subsets_jy` (target subsets of types 5-6).")
     filt = [n for n, recs in data.items() if _values(recs, "image_flux_filtered_jy").size]
     for n in filt:
+        with_response = all(r.get("image_filter_response") is not None for r in data[n]
+                            if r.get("image_flux_filtered_jy") is not None)
+        how = ("divided by the filter response (the stacked PSF's filtered / unfiltered "
+               "peak)" if with_response else
+               "the bare filtered peak, not divided by the filter response (records made "
+               "before it was recorded: lower than a flux by the short spacings' share of "
+               "the peak)")
         add(fig_filtered(n, data[n], figdir / f"filtered_type{n}.png"),
             f"low-frequency filter, type {n}",
             f"Type {n} (as the paper's Fig. {_FILTER_FIG}): the image-stacked flux density "
-            "with the short spacings filtered out of the stamps (histogram, red: its "
+            f"with the short spacings filtered out of the stamps, {how} (histogram, red: its "
             "Gaussian) against the unfiltered one (blue dashed: its Gaussian); black dashed: "
             "the true mean flux.")
     if not filt:

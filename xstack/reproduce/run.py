@@ -27,7 +27,9 @@ as absent):
   (10, 30, 100, 300, ... and all; nested subsets of the same residual data): Fig. 1, noise
   against the number of targets. ``"<n_targets>"`` is ``uv_flux_jy`` itself.
 * ``image_flux_filtered_jy`` (types with a uv cut, 5-7): the image-stacked flux with the
-  §5.3 uv-plane filter at the cut (``filter_lowfreq="5000m"``): Fig. 12.
+  §5.3 uv-plane filter at the cut (``filter_lowfreq="5000m"``): Fig. 12. With
+  ``image_filter_response`` (added later) it is the filtered peak divided by that response
+  (``ImstackResult.filter_response``), a flux density; older lines hold the filtered peak.
 * ``image_flux_subpixel_jy`` (every type but 7): the image-stacked flux of the same maps
   with the stamps aligned by a Fourier shift (``subpixel="fourier"``) instead of to the
   nearest pixel: how much of image-stacking's deficit is pixelisation.
@@ -249,6 +251,9 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
             # Fig. 12: the stacked stamp with the paper's uv-plane filter at the uv cut (§5.3)
             ims_filtered = image_stack(filter_lowfreq=f"{uvmin:g}m")
             rec["image_flux_filtered_jy"] = ims_filtered.flux_jy
+            # the filtered flux is the filtered peak divided by this (the stacked PSF's
+            # filtered / unfiltered peak); records without it hold the bare filtered peak
+            rec["image_filter_response"] = ims_filtered.filter_response
         if n in SUBSET_TYPES:
             # Fig. 1: the same residual data stacked on the first N targets (nested subsets)
             subsets = {}

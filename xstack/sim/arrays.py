@@ -244,6 +244,21 @@ def elevation(positions_site: Any, mjd_seconds: Any, ra: float, dec: float) -> n
     return np.arcsin(np.clip(s_itrf @ up, -1, 1))
 
 
+def antenna_elevations(positions: Any, mjd_seconds: Any, ra: float, dec: float) -> np.ndarray:
+    """(ntime, nant) elevation (rad) of (ra, dec) at each antenna (ITRF m) at UTC times.
+
+    The local vertical is each antenna's WGS84 normal (the geocentric direction differs by up
+    to 0.19 deg, too much near an elevation limit); no refraction (CASA's simulator, whose
+    limit the presets follow, applies none either).
+    """
+    pos = np.atleast_2d(np.asarray(positions, dtype=np.float64))
+    lon, lat, _ = erfa.gc2gd(1, pos)
+    up = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=-1)
+    c2t = celestial_to_terrestrial(mjd_seconds)
+    s_itrf = np.einsum("tij,j->ti", c2t, uvw_basis(ra, dec)[2])
+    return np.arcsin(np.clip(s_itrf @ up.T, -1.0, 1.0))
+
+
 def shadowed_antennas(ant_uvw: np.ndarray, diameters: np.ndarray) -> np.ndarray:
     """(ntime, nant) bool: antennas shadowed by another one at each time.
 

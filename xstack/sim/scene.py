@@ -27,7 +27,7 @@ pointing), a ``spectral`` set-up, ``pointings``, ``effects`` (each opt-in) and a
     primary_beam = "auto"       # none | auto (the telescope's standard beam) | airy | gaussian
     w_term = true
     noise = { sigma = 0.01 }        # or { sefd = 420.0 } or { tsys = 90.0 }
-    flagging = { random_fraction = 0.0, shadowing = false }
+    flagging = { random_fraction = 0.0, shadowing = false }   # elevation_limit_deg = 10.0
     bandwidth_smearing = false      # channel average: sinc(pi d dnu / c)
     time_smearing = false           # integration average (Earth rotation)
 
@@ -97,10 +97,13 @@ class NoiseSpec:
 @dataclass
 class FlaggingSpec:
     """Flagging: a random fraction of visibilities (per time, baseline, channel and
-    polarization) and/or antenna shadowing."""
+    polarization), antenna shadowing, and/or an elevation limit."""
 
     random_fraction: float = 0.0
     shadowing: bool = False
+    #: flag every baseline of an antenna that sees the field center below this elevation
+    #: (degrees; ``None``: none), as a telescope (and CASA's simulator, default 10 deg) would
+    elevation_limit_deg: float | None = None
 
 
 @dataclass
@@ -481,6 +484,9 @@ def validate_scene(scene: Scene) -> Scene:
             raise XstackError("effects.noise: efficiencies must be in (0, 1]")
     if e.flagging is not None and not 0 <= e.flagging.random_fraction < 1:
         raise XstackError("effects.flagging.random_fraction: must be in [0, 1)")
+    if (e.flagging is not None and e.flagging.elevation_limit_deg is not None
+            and not -90 <= e.flagging.elevation_limit_deg < 90):
+        raise XstackError("effects.flagging.elevation_limit_deg: must be in [-90, 90) degrees")
     if scene.visibility_dtype not in ("complex64", "complex128"):
         raise XstackError("visibility_dtype: complex64 or complex128")
     if scene.time_chunk < 0:

@@ -11,7 +11,7 @@ the ones in the graph and :func:`xstack.sim.kernels.record_steps` counts those e
 ``noise``         ``effects.noise`` (random numbers are drawn only here and in flagging)
 ``bandwidth_smearing``, ``time_smearing``  ``effects.bandwidth_smearing`` / ``time_smearing``
                   (channel / integration averages, :mod:`xstack.smearing`)
-``flag_random``, ``flag_shadow``  ``effects.flagging``
+``flag_random``, ``flag_shadow``, ``flag_elevation``  ``effects.flagging``
 
 Reproducibility: the catalog of population i is drawn from ``SeedSequence(seed,
 spawn_key=(1, i))``; the noise of integration t of pointing p from ``SeedSequence(seed,
@@ -405,6 +405,8 @@ def _plan(scene: Scene, seed: int, scale: float) -> _Plan:
             steps.add("flag_random")
         if e.flagging.shadowing:
             steps.add("flag_shadow")
+        if e.flagging.elevation_limit_deg is not None:
+            steps.add("flag_elevation")
     return _Plan(scene, array, freq, width, list(scene.spectral.polarizations), pointings,
                  times, catalogs, ra, dec, flux, fwhm, beam, sigma, steps, lines)
 
@@ -619,6 +621,12 @@ def _flag_block(dummy: np.ndarray, *, ctx: dict[str, Any], block_info: Any = Non
         sh = arr.shadowed_antennas(ant, ctx["diameters"])
         bad = sh[:, ctx["a1"][b0:b1]] | sh[:, ctx["a2"][b0:b1]]
         out |= bad[:, :, None, None]
+    if ctx["elevation_limit"] is not None:
+        kernels._count("flag_elevation")
+        low = arr.antenna_elevations(ctx["positions"], ctx["times"][t0:t1],
+                                     *ctx["center"]) < ctx["elevation_limit"]
+        bad = low[:, ctx["a1"][b0:b1]] | low[:, ctx["a2"][b0:b1]]
+        out |= bad[:, :, None, None]
     return out
 
 
@@ -648,6 +656,10 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         "seed": int(seed), "pointing": p, "dtype": dtype,
         "flag_fraction": scene.effects.flagging.random_fraction if scene.effects.flagging else 0.0,
         "shadowing": bool(scene.effects.flagging and scene.effects.flagging.shadowing),
+        "elevation_limit": (math.radians(scene.effects.flagging.elevation_limit_deg)
+                            if scene.effects.flagging is not None
+                            and scene.effects.flagging.elevation_limit_deg is not None
+                            else None),
         "smear_width": plan.width if scene.effects.bandwidth_smearing else None,
         "smear_time": (float(scene.observation.integration) if scene.effects.time_smearing
                        else None),
@@ -664,7 +676,7 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
     uvw = da.map_blocks(_uvw_block, dummy, ctx=ctx, dtype=np.float64, new_axis=[2],
                         chunks=(dummy.chunks[0], dummy.chunks[1], (3,)),
                         name=f"xstack-sim-uvw-{token}-{p}", meta=np.empty((0, 0, 0)))
-    if ctx["flag_fraction"] > 0 or ctx["shadowing"]:
+    if ctx["flag_fraction"] > 0 or ctx["shadowing"] or ctx["elevation_limit"] is not None:
         flag = da.map_blocks(_flag_block, dummy, ctx=ctx, dtype=bool, new_axis=[2, 3],
                              chunks=(dummy.chunks[0], dummy.chunks[1], (nchan,), (npol,)),
                              name=f"xstack-sim-flag-{token}-{p}",

@@ -234,22 +234,11 @@ def time_of_hour_angle(hour_angle: float, ra: float, longitude: float, date_mjd:
     return t
 
 
-def elevation(positions_site: Any, mjd_seconds: Any, ra: float, dec: float) -> np.ndarray:
-    """Elevation (rad) of (ra, dec) seen from ITRF ``positions_site`` at UTC times."""
-    site = np.asarray(positions_site, dtype=np.float64)
-    up = site / np.linalg.norm(site)  # geocentric up is good enough for horizon checks
-    c2t = celestial_to_terrestrial(mjd_seconds)
-    s_icrs = uvw_basis(ra, dec)[2]
-    s_itrf = np.einsum("tij,j->ti", c2t, s_icrs)
-    return np.arcsin(np.clip(s_itrf @ up, -1, 1))
-
-
 def antenna_elevations(positions: Any, mjd_seconds: Any, ra: float, dec: float) -> np.ndarray:
     """(ntime, nant) elevation (rad) of (ra, dec) at each antenna (ITRF m) at UTC times.
 
     The local vertical is each antenna's WGS84 normal (the geocentric direction differs by up
-    to 0.19 deg, too much near an elevation limit); no refraction (CASA's simulator, whose
-    limit the presets follow, applies none either).
+    to 0.19 deg, too much near an elevation limit); no refraction.
     """
     pos = np.atleast_2d(np.asarray(positions, dtype=np.float64))
     lon, lat, _ = erfa.gc2gd(1, pos)
@@ -257,6 +246,11 @@ def antenna_elevations(positions: Any, mjd_seconds: Any, ra: float, dec: float) 
     c2t = celestial_to_terrestrial(mjd_seconds)
     s_itrf = np.einsum("tij,j->ti", c2t, uvw_basis(ra, dec)[2])
     return np.arcsin(np.clip(s_itrf @ up.T, -1.0, 1.0))
+
+
+def elevation(positions_site: Any, mjd_seconds: Any, ra: float, dec: float) -> np.ndarray:
+    """Elevation (rad, shape (ntime,)) of (ra, dec) seen from one ITRF site at UTC times."""
+    return antenna_elevations(positions_site, mjd_seconds, ra, dec)[:, 0]
 
 
 def shadowed_antennas(ant_uvw: np.ndarray, diameters: np.ndarray) -> np.ndarray:

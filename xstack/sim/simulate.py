@@ -42,7 +42,7 @@ from xstack.errors import XstackError
 from xstack.schema import baseline_pairs, new_partition, partition_name, write_store
 from xstack.sim import arrays as arr
 from xstack.sim import kernels
-from xstack.sim.scene import Scene, angle_pair, load_scene
+from xstack.sim.scene import FlaggingSpec, Scene, angle_pair, load_scene
 
 ARCSEC = math.pi / (180.0 * 3600.0)
 BOLTZMANN = 1.380649e-23
@@ -647,6 +647,7 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         keep &= att.max(axis=1, initial=0.0) > 0
         att = np.ascontiguousarray(att[keep])
     fwhm = plan.fwhm[keep]
+    flagging = scene.effects.flagging or FlaggingSpec()  # no flagging: the defaults flag nothing
     ctx = {
         "a1": a1, "a2": a2, "positions": plan.array.positions, "diameters": plan.array.diameters,
         "times": times, "center": center, "freq": plan.freq, "pols": plan.pols,
@@ -654,12 +655,10 @@ def _partition(plan: _Plan, p: int, seed: int, token: str) -> xr.Dataset:
         "nm1": nm1[keep] if scene.effects.w_term else None, "flux": plan.flux[keep],
         "att": att, "fwhm": fwhm, "extended": fwhm > 0, "sigma": plan.sigma,
         "seed": int(seed), "pointing": p, "dtype": dtype,
-        "flag_fraction": scene.effects.flagging.random_fraction if scene.effects.flagging else 0.0,
-        "shadowing": bool(scene.effects.flagging and scene.effects.flagging.shadowing),
-        "elevation_limit": (math.radians(scene.effects.flagging.elevation_limit_deg)
-                            if scene.effects.flagging is not None
-                            and scene.effects.flagging.elevation_limit_deg is not None
-                            else None),
+        "flag_fraction": flagging.random_fraction,
+        "shadowing": flagging.shadowing,
+        "elevation_limit": (None if flagging.elevation_limit_deg is None
+                            else math.radians(flagging.elevation_limit_deg)),
         "smear_width": plan.width if scene.effects.bandwidth_smearing else None,
         "smear_time": (float(scene.observation.integration) if scene.effects.time_smearing
                        else None),

@@ -212,6 +212,39 @@ def test_other_procedure_is_not_resumed(first, monkeypatch):
     assert calls == [0]
 
 
+def test_changed_scene_is_not_resumed(first, tmp_path, monkeypatch):
+    """A record of a preset since changed (here: the presets before they flagged, as the
+    records of 2026-12-02 were) is not mixed with the new ones: its seed runs again, and the
+    report groups the lines by scene."""
+    import shutil
+
+    import xstack
+    from xstack.reproduce.report import load_type
+
+    out, res, d = first
+    shutil.copytree(out / "type1", tmp_path / "type1")
+    old = _lines(tmp_path, 1)
+    digest = xstack.preset_scene("paper-1", scale=SCALE).digest()
+    assert {r["scene_sha256"] for r in old} == {digest} and len(digest) == 64
+    real = xstack.preset_scene
+
+    def unflagged(name, scale=1.0):
+        scene = real(name, scale=scale)
+        return dataclasses.replace(scene, effects=dataclasses.replace(scene.effects,
+                                                                      flagging=None))
+
+    monkeypatch.setattr(xstack, "preset_scene", unflagged)
+    assert unflagged("paper-1", SCALE).digest() != digest
+    calls = []
+    monkeypatch.setattr(rr, "run_realization", lambda n, seed, *a, **k: calls.append(seed) or {
+        "seed": seed, "seconds": 0.0})
+    rr.reproduce(1, realizations=2, scale=SCALE, outdir=tmp_path, procedures=SMALL)
+    assert calls == [0, 1]
+    used, note = load_type(tmp_path, 1)
+    assert [r["seed"] for r in used] == [0, 1] and all(r["seconds"] == 0.0 for r in used)
+    assert note.startswith(f"{len(old)} line(s)") and "another scene" in note
+
+
 def test_dask_client_runs_realizations_as_tasks(first):
     distributed = pytest.importorskip("distributed")
     out, res, d = first

@@ -155,7 +155,8 @@ def test_type7_sizes_and_failed_fits(run_dir):
 
 def test_other_scale_and_truncated_lines_left_out(run_dir):
     text = run_dir[3]
-    assert "Type 1: 1 line(s) made at another scale or with another procedure left out" in text
+    assert ("Type 1: 1 line(s) made at another scale, with another procedure or from another "
+            "scene left out") in text
 
 
 def _png_ok(path):

@@ -63,22 +63,22 @@ def _ratio(a: float, b: float) -> float:
 def load_type(outdir: str | os.PathLike, n: int) -> tuple[list[dict[str, Any]], str]:
     """The realisations of type ``n`` in ``outdir`` the report uses, and a note on the others.
 
-    The lines made the way the last line was (same scale and procedure: a resumed run only
-    reuses those), one per seed (the first), in seed order.
+    The lines made the way the last line was (same scale, procedure and scene: a resumed run
+    only reuses those), one per seed (the first), in seed order.
     """
     records = read_records(Path(outdir) / f"type{n}" / JSONL)
     if not records:
         return [], ""
     last = records[-1]
     same = [r for r in records
-            if r.get("scale") == last.get("scale") and r.get("procedure") == last.get("procedure")]
+            if all(r.get(key) == last.get(key) for key in ("scale", "procedure", "scene_sha256"))]
     by_seed: dict[int, dict[str, Any]] = {}
     for r in same:
         by_seed.setdefault(int(r["seed"]), r)
     note = ""
     if len(same) < len(records):
-        note = (f"{len(records) - len(same)} line(s) made at another scale or with another "
-                "procedure left out")
+        note = (f"{len(records) - len(same)} line(s) made at another scale, with another "
+                "procedure or from another scene left out")
     return [by_seed[s] for s in sorted(by_seed)], note
 
 

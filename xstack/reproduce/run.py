@@ -180,6 +180,13 @@ def clean_threshold(proc: Procedure, scale: float) -> float:
                CLEAN_FLOOR_SIGMA * proc.thermal_noise_jy / math.sqrt(scale))
 
 
+def scene_digest(n: int, scale: float) -> str:
+    """:meth:`~xstack.sim.scene.Scene.digest` of the scene type ``n`` simulates at ``scale``."""
+    import xstack
+
+    return xstack.preset_scene(f"paper-{n}", scale=scale).digest()
+
+
 def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
                     keep_figures: bool = False, procedure: Procedure | None = None
                     ) -> dict[str, Any]:
@@ -560,9 +567,12 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         path = workdir / JSONL
         proc = (procedures or {}).get(n)
         used = json_ready((proc or PROCEDURES[n]).to_dict())
-        # an earlier realisation counts only if it was made the same way
+        scene = scene_digest(n, float(scale))
+        # an earlier realisation counts only if it was made the same way, from the same scene
+        # (a record of a preset since changed, e.g. before the presets flagged, is rerun)
         records = [r for r in read_records(path)
-                   if r.get("scale") == float(scale) and r.get("procedure") == used]
+                   if r.get("scale") == float(scale) and r.get("procedure") == used
+                   and r.get("scene_sha256") == scene]
         _repair(path, read_records(path))
         done = {int(r["seed"]) for r in records}
         missing = [s for s in range(int(realizations)) if s not in done]
@@ -572,7 +582,7 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
                             total=len(missing))
 
         for rec in _results(n, missing, float(scale), workdir, keep, proc, client):
-            rec = dict(rec, type=n, scale=float(scale), procedure=used)
+            rec = dict(rec, type=n, scale=float(scale), procedure=used, scene_sha256=scene)
             _append(path, rec)
             records.append(rec)
             if hasattr(bar, "update"):

@@ -45,6 +45,8 @@ naming the field (``populations[0].flux.value: ...``).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import tomllib
 import typing
@@ -254,6 +256,15 @@ class Scene:
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON/TOML-able dictionary (``load_scene(scene.to_dict())`` round-trips)."""
         return _strip_none(dataclasses.asdict(self))
+
+    def digest(self) -> str:
+        """SHA-256 (hex) of the scene's canonical JSON form: equal digests, equal scenes.
+
+        Runs that reuse earlier results (``xstack reproduce``) compare it, so a result made
+        from a scene that has since changed (e.g. a preset that gained flags) is not mixed in.
+        """
+        text = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()
 
     def validate(self) -> Scene:
         """Check values (not just types); raise :class:`XstackError` naming the field."""

@@ -43,7 +43,7 @@ extensions = [
 # .rst only because numpydoc loads autosummary, which asks for it; every page is Markdown
 source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
 root_doc = "index"
-exclude_patterns = ["_build"]
+exclude_patterns = ["_build", "records"]  # realisation lines (and any report made there)
 
 # Markdown: `$...$` maths as in the pages, heading anchors for the `page.md#section` links
 # the pages use between each other.

@@ -1,0 +1,71 @@
+"""The reproduction page's full-size tables are those of the realisation lines in the repository.
+
+``docs/records/flagged/type<N>/realizations.jsonl`` are the lines ``xstack reproduce`` wrote
+for the page's "with the simulator's flags" sections. Checked here, with plain numpy on the
+lines (not the report writer): the page's row of each type says what the lines say, and the
+lines were simulated from today's presets (their scene digest), so a change of a preset that
+makes the page stale fails here rather than going unnoticed.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import xstack
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+RECORDS = DOCS / "records" / "flagged"
+TYPES = sorted(int(p.name[4:]) for p in RECORDS.glob("type*") if (p / "realizations.jsonl").exists())
+
+
+def _lines(n: int) -> list[dict]:
+    text = (RECORDS / f"type{n}" / "realizations.jsonl").read_text(encoding="utf-8")
+    return [json.loads(x) for x in text.splitlines()]
+
+
+def _section_row(n: int) -> list[str]:
+    """The row of type ``n`` in the first table of the page's flagged section holding it."""
+    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
+    sections = page.split("\n## ")
+    for sec in sections:
+        if sec.startswith("Full size with the simulator's flags") and f"| {n} | " in sec:
+            line = next(x for x in sec.splitlines() if x.startswith(f"| {n} | "))
+            return [c.strip() for c in line.strip("|").split("|")]
+    raise AssertionError(f"no flagged section of docs/reproduction.md has a row of type {n}")
+
+
+def test_records_exist():
+    assert TYPES, "docs/records/flagged holds no realisation lines"
+
+
+@pytest.mark.parametrize("n", TYPES)
+def test_records_are_of_todays_presets(n):
+    lines = _lines(n)
+    seeds = [r["seed"] for r in lines]
+    assert len(set(seeds)) == len(seeds), "a seed twice"
+    scales = {r["scale"] for r in lines}
+    assert len(scales) == 1
+    (scale,) = scales
+    digest = xstack.preset_scene(f"paper-{n}", scale=scale).digest()
+    assert {r.get("scene_sha256") for r in lines} == {digest}, (
+        f"type {n}: the preset has changed since docs/records was made; run the type again")
+
+
+@pytest.mark.parametrize("n", TYPES)
+def test_page_row_is_the_records(n):
+    lines = _lines(n)
+    uv = np.array([r["uv_flux_jy"] for r in lines]) * 1e6
+    im = np.array([r["image_flux_jy"] for r in lines]) * 1e6
+    true = np.mean([r["true_flux_jy"] for r in lines]) * 1e6
+    noise = np.mean([r["expected_noise_jy"] for r in lines]) * 1e6
+    row = _section_row(n)
+    assert row[1] == str(len(lines))
+    assert row[4] == f"{true:.2f} ± {noise:.2f}"
+    assert row[5] == f"{uv.mean():.2f} ± {uv.std(ddof=1):.2f} ({uv.mean() / uv.std(ddof=1):.1f})"
+    assert row[6] == f"{im.mean():.2f} ± {im.std(ddof=1):.2f} ({im.mean() / im.std(ddof=1):.1f})"
+    offset = (uv.mean() - true) / (uv.std(ddof=1) / np.sqrt(len(uv)))
+    assert row[10] == f"{offset:+.1f}"

@@ -526,7 +526,9 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         never below 5 times the (scaled) thermal noise (:func:`clean_threshold`).
     outdir
         Directory of ``type{N}/realizations.jsonl`` (one JSON line per realisation) and the
-        figure data; an earlier run's lines are reused (only missing seeds run).
+        figure data; an earlier run's lines are reused (only missing seeds run) if they were
+        made at the same scale, with the same procedure and from the same scene
+        (``scene_sha256``, :meth:`~xstack.sim.scene.Scene.digest`).
     progress
         Progress bar over realisations on stderr.
     client

@@ -85,3 +85,21 @@ def test_a_covered_first_draw_keeps_its_sources():
             np.testing.assert_allclose(np.radians(plan.catalogs[q.name]["dec"]), dec, atol=1e-12)
             checked += 1
     assert checked >= 3
+
+
+@pytest.mark.parametrize("pair", [("paper-1", "paper-2"), ("paper-3", "paper-4"),
+                                  ("paper-5", "paper-6")])
+def test_paired_types_share_each_seeds_observation(pair):
+    """Seed s of types that differ in one property is the same observation (docs/reproduction.md,
+    "Seeds are shared between types"): the same source positions and fluxes wherever the
+    populations agree, the same times and noise levels; another seed is another sky."""
+    a, b = (preset_scene(name, scale=0.01) for name in pair)
+    pa, pb = _plan(a, 3, 1.0), _plan(b, 3, 1.0)
+    assert np.array_equal(np.concatenate(pa.times), np.concatenate(pb.times))
+    assert np.array_equal(pa.sigma, pb.sigma)
+    for qa, qb in zip(a.populations, b.populations, strict=True):
+        ca, cb = pa.catalogs[qa.name], pb.catalogs[qb.name]
+        assert np.array_equal(ca["ra"], cb["ra"]) and np.array_equal(ca["dec"], cb["dec"])
+        assert np.array_equal(ca["flux"], cb["flux"]) == (qa.flux == qb.flux)
+    other = _plan(a, 4, 1.0)
+    assert not np.array_equal(other.catalogs["targets"]["ra"], pa.catalogs["targets"]["ra"])

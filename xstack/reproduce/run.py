@@ -519,7 +519,10 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
     types
         A type number 1-11, ``"all"`` (the supported types), or a list of them.
     realizations
-        Number of realisations per type (seeds 0 … R-1); the paper used 100.
+        Number of realisations per type (seeds 0 … R-1); the paper used 100. Seed s of two
+        types whose presets differ only in the imaging or in one property of a population
+        (1 and 2, 3 and 4, 5 and 6) simulates the same observation (same noise and, where the
+        populations agree, the same sources): their results are paired, not independent.
     scale
         Scale of the presets in (0, 1]: observing time and large populations times
         ``scale`` (:func:`xstack.preset_scene`); the CLEAN threshold is the paper's but

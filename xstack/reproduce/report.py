@@ -23,7 +23,7 @@ import numpy as np
 from xstack.coords import SPEED_OF_LIGHT
 from xstack.errors import NoDataError
 from xstack.reproduce.paper import MJY, PAPER_TYPE7_SIZES, PROCEDURES, TYPES, UJY, paper_row
-from xstack.reproduce.run import JSONL, PROFILE_EDGES_KLAMBDA, read_records
+from xstack.reproduce.run import JSONL, PROFILE_EDGES_KLAMBDA, made_the_same_way, read_records
 
 #: Display unit of each type, as Table 2: µJy for the VLA types, mJy for the ALMA ones (8-10).
 UNITS: dict[int, tuple[float, str]] = {n: (MJY, "mJy") if n in (8, 9, 10) else (UJY, "µJy")
@@ -70,8 +70,7 @@ def load_type(outdir: str | os.PathLike, n: int) -> tuple[list[dict[str, Any]], 
     if not records:
         return [], ""
     last = records[-1]
-    same = [r for r in records
-            if all(r.get(key) == last.get(key) for key in ("scale", "procedure", "scene_sha256"))]
+    same = [r for r in records if made_the_same_way(r, last)]
     by_seed: dict[int, dict[str, Any]] = {}
     for r in same:
         by_seed.setdefault(int(r["seed"]), r)

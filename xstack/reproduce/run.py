@@ -419,6 +419,17 @@ def residual_images(residual: Any, proc: Procedure, tmp: Path) -> list[tuple[Pat
     return maps
 
 
+#: The fields that say how a realisation line was made: a resumed run reuses, and the report
+#: shows, only lines that agree on all of them.
+MADE_BY = ("scale", "procedure", "scene_sha256")
+
+
+def made_the_same_way(record: dict[str, Any], reference: dict[str, Any]) -> bool:
+    """Whether ``record`` was made at the scale, with the procedure and from the scene of
+    ``reference`` (the :data:`MADE_BY` fields)."""
+    return all(record.get(key) == reference.get(key) for key in MADE_BY)
+
+
 def read_records(path: Path) -> list[dict[str, Any]]:
     """The valid JSON lines of ``path`` (a truncated or damaged line is skipped)."""
     if not path.exists():
@@ -575,10 +586,10 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         scene = scene_digest(n, float(scale))
         # an earlier realisation counts only if it was made the same way, from the same scene
         # (a record of a preset since changed, e.g. before the presets flagged, is rerun)
-        records = [r for r in read_records(path)
-                   if r.get("scale") == float(scale) and r.get("procedure") == used
-                   and r.get("scene_sha256") == scene]
-        _repair(path, read_records(path))
+        made_by = {"scale": float(scale), "procedure": used, "scene_sha256": scene}
+        on_file = read_records(path)
+        _repair(path, on_file)
+        records = [r for r in on_file if made_the_same_way(r, made_by)]
         done = {int(r["seed"]) for r in records}
         missing = [s for s in range(int(realizations)) if s not in done]
         keep = not any(workdir.glob("profile_seed*.npz"))
@@ -587,7 +598,7 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
                             total=len(missing))
 
         for rec in _results(n, missing, float(scale), workdir, keep, proc, client):
-            rec = dict(rec, type=n, scale=float(scale), procedure=used, scene_sha256=scene)
+            rec = dict(rec, type=n, **made_by)
             _append(path, rec)
             records.append(rec)
             if hasattr(bar, "update"):

@@ -7,6 +7,7 @@ place under its final name by :func:`atomic_store`, its ``xstack_complete`` flag
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import shutil
@@ -25,6 +26,20 @@ def _remove(path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
     elif path.exists() or path.is_symlink():
         path.unlink(missing_ok=True)
+
+
+def discard(path: str | os.PathLike) -> None:
+    """Remove the temporary ``path`` of a failed or interrupted write, now and once more at
+    interpreter exit.
+
+    After an interrupt (Ctrl-C, SIGTERM) the threads of the computation that was running
+    finish the tasks they had begun, and those may still write into ``path`` after it was
+    removed here. Python joins those threads (dask's thread pool) before it runs the
+    :mod:`atexit` callbacks, so the second removal comes after the last write.
+    """
+    path = Path(path)
+    _remove(path)
+    atexit.register(_remove, path)
 
 
 def _check(loc: Location, overwrite: bool) -> None:
@@ -55,9 +70,10 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False,
     """Context manager yielding a temporary path to write ``path`` (file or directory) to.
 
     On success the temporary is renamed to ``path`` (an existing output is replaced only with
-    ``overwrite``); on any error, or if the process is interrupted, the temporary is removed
-    or, if the process was killed, left under a hidden ``.NAME.partial-*`` name that no
-    xstack reader accepts. For a remote ``path`` (a URL) the temporary is local and uploaded
+    ``overwrite``); on any error, or if the process is interrupted (Ctrl-C; SIGTERM in the
+    ``xstack`` program), the temporary is removed (:func:`discard`) or, if the process was
+    killed (SIGKILL), left under a hidden ``.NAME.partial-*`` name that no xstack reader
+    accepts. For a remote ``path`` (a URL) the temporary is local and uploaded
     on success.
     """
     loc = locate(path, storage_options)
@@ -82,7 +98,7 @@ def atomic_output(path: str | os.PathLike, overwrite: bool = False,
         else:
             os.replace(tmp, path)
     except BaseException:
-        _remove(tmp)
+        discard(tmp)
         raise
 
 

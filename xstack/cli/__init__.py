@@ -25,12 +25,15 @@ and what to stderr (messages, warnings, errors, progress bars on a terminal) is 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import re
+import signal
 import sys
+import threading
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any, NoReturn
 
 from xstack.cli._cluster import cluster_of
@@ -180,11 +183,43 @@ def _json_default(obj: Any) -> Any:
     return str(obj)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM arrived (``kill``, a batch scheduler's time limit, a container stopping).
+
+    Raised in the main thread so that the run unwinds as after Ctrl-C: every temporary
+    output and work directory is removed on the way out, where the default action of SIGTERM
+    would end the process at once and leave them behind.
+    """
+
+
+@contextlib.contextmanager
+def sigterm_unwinds() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` in the main thread.
+
+    A second SIGTERM while the first unwinds is ignored, so that the clean-up it started
+    finishes (SIGKILL still ends the process). Outside the main thread, where Python cannot
+    set signal handlers, the block runs with the handler the process has.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum: int, frame: Any) -> NoReturn:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``xstack`` console script."""
     parser = build_parser()
-    if argv is None:
-        # the program itself (console script, python -m xstack), not an in-process call:
+    program = argv is None  # the console script or python -m xstack, not an in-process call
+    if program:
         # chunk-sized arrays are returned to the OS when freed (xstack._memory)
         from xstack._memory import bound_heap
 
@@ -203,14 +238,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     warnings.filterwarnings("ignore", category=RuntimeWarning, module="dask")
     shown = warnings.showwarning
     warnings.showwarning = _warning_printer(sub)
+    # only the program owns the process's signals; a caller of main() keeps its own
+    terminable = sigterm_unwinds() if program else contextlib.nullcontext()
     try:
-        with session(args), storage_of(args):  # --storage-options
+        with terminable, session(args), storage_of(args):  # --storage-options
             try:
                 with cluster_of(args):  # --scheduler/--workers/DASK_SCHEDULER_ADDRESS
                     status = args._run(args)
             except XstackError as exc:
                 error(name_flags(str(exc), exc.option, sub))
                 return 1
+            except Terminated:
+                error("terminated (SIGTERM)")
+                return 128 + signal.SIGTERM
             except KeyboardInterrupt:
                 error("interrupted")
                 return 130

@@ -46,7 +46,8 @@ expect, see the [tutorial](tutorial.md).
   (also for a damaged store: the line names the store, the variable, the chunk and its file).
   A bad command line (unknown option, bad value or unit): one line `error: COMMAND: ...`,
   exit status 2, no usage block (`--help` shows it). Ctrl-C: `error: interrupted`, exit
-  status 130.
+  status 130. SIGTERM (`kill`, a batch scheduler's time limit): `error: terminated (SIGTERM)`,
+  exit status 143. Both remove the run's temporaries on the way out.
 - **Figures**: value and error to matching decimals with one SI prefix per line
   (`16.49 ± 3.18 µJy`), `µJy/beam` where a value is per beam, `1 position` / `2 positions`.
 - Outputs are written under a temporary name and renamed when complete; nothing is replaced

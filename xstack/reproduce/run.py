@@ -63,6 +63,7 @@ from typing import Any
 
 import numpy as np
 
+from xstack._atomic import discard
 from xstack._result import Result, json_ready
 from xstack.errors import OptionError, XstackError
 from xstack.reproduce.paper import PROCEDURES, TYPES, Procedure, paper_row
@@ -310,6 +311,9 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
                                 **extra)
         rec["seconds"] = time.perf_counter() - t0
         return json_ready(rec)
+    except BaseException:
+        discard(tmp)  # interrupted: its threads may still write into it
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

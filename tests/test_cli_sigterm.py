@@ -14,9 +14,11 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
+from _sim_helpers import TINY_SCENE
 
 from xstack.cli import Terminated, main, sigterm_unwinds
 
@@ -39,11 +41,19 @@ def _terminate(patch: str, args: list[str], cwd: Path) -> tuple[int, str]:
     script = _STALL.format(patch=textwrap.dedent(patch))
     proc = subprocess.Popen([sys.executable, "-c", script, *args], cwd=cwd,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = proc.stdout.readline()
-        if line.strip() != "READY":
+
+    def at_the_stall() -> None:
+        if proc.stdout.readline().strip() != "READY":
             proc.kill()
             pytest.fail(f"the run did not reach the stall: {proc.communicate()[1]}")
+
+    return _sigterm_when(proc, at_the_stall)
+
+
+def _sigterm_when(proc: subprocess.Popen, ready) -> tuple[int, str]:
+    """SIGTERM ``proc`` once ``ready()`` returns; its (exit status, stderr)."""
+    try:
+        ready()
         os.kill(proc.pid, signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
     finally:
@@ -55,19 +65,25 @@ def _terminate(patch: str, args: list[str], cwd: Path) -> tuple[int, str]:
 
 def _scene(tmp_path: Path) -> Path:
     scene = tmp_path / "scene.toml"
-    scene.write_text(textwrap.dedent("""
+    scene.write_text(TINY_SCENE)
+    return scene
+
+
+#: A VLA A scene of 6 h in 10 s integrations and 16 channels: long enough to write that a
+#: SIGTERM lands while dask's threads write its chunks.
+_LONG_SCENE = """
         name = "sigterm"
         [array]
         config = "vla.a"
         [observation]
         date = "2014-01-01"
-        hour_angle = [-0.2, 0.2]
-        integration = 120.0
-        time_per_pointing = 1440.0
+        hour_angle = [-3.0, 3.0]
+        integration = 10.0
+        time_per_pointing = 21600.0
         [spectral]
         center = 1.4e9
         bandwidth = 64e6
-        channels = 2
+        channels = 16
         polarizations = ["RR", "LL"]
         [pointings]
         mode = "single"
@@ -78,8 +94,7 @@ def _scene(tmp_path: Path) -> Path:
         count = 5
         flux = { kind = "fixed", value = "100uJy" }
         positions = { kind = "box", size_arcsec = [60, 60] }
-    """))
-    return scene
+    """
 
 
 def test_sigterm_during_simulate_leaves_nothing(tmp_path):
@@ -174,28 +189,18 @@ def test_sigterm_while_dask_writes_the_store(tmp_path):
     """The real thing: SIGTERM a simulation while dask's threads write its chunks (no
     stall); the store and its temporary are gone once the process has exited."""
     scene = tmp_path / "scene.toml"
-    scene.write_text(_scene(tmp_path).read_text().replace("hour_angle = [-0.2, 0.2]",
-                                                          "hour_angle = [-3.0, 3.0]")
-                     .replace("integration = 120.0", "integration = 10.0")
-                     .replace("time_per_pointing = 1440.0", "time_per_pointing = 21600.0")
-                     .replace("channels = 2", "channels = 16"))
+    scene.write_text(textwrap.dedent(_LONG_SCENE))
     proc = subprocess.Popen([sys.executable, "-m", "xstack", "simulate", str(scene), "out.zarr"],
                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
-    try:
-        import time
-
+    def chunks_on_disk() -> None:
         deadline = time.monotonic() + 120
         while not any(p.name.startswith(".out.zarr.partial-") and any(p.rglob("c/*"))
                       for p in tmp_path.iterdir()):
             assert proc.poll() is None, proc.communicate()[1]
             assert time.monotonic() < deadline, "no chunk was written in 120 s"
             time.sleep(0.05)
-        os.kill(proc.pid, signal.SIGTERM)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 143, err
+
+    status, err = _sigterm_when(proc, chunks_on_disk)
+    assert status == 143, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml"]

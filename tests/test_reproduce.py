@@ -13,11 +13,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import shutil
+import warnings
 
 import numpy as np
 import pytest
 
-from xstack.errors import OptionError
+from xstack.errors import OptionError, XstackWarning
 from xstack.reproduce import paper
 from xstack.reproduce import run as rr
 
@@ -216,7 +218,6 @@ def test_changed_scene_is_not_resumed(first, tmp_path, monkeypatch):
     """A record of a preset since changed (here: the presets before they flagged, as the
     records of 2026-12-02 were) is not mixed with the new ones: its seed runs again, and the
     report groups the lines by scene."""
-    import shutil
 
     import xstack
     from xstack.reproduce.report import load_type
@@ -438,3 +439,25 @@ def test_mosaic_type8_joint(tmp_path, monkeypatch):
         assert math.isfinite(line[k]), k
     for k in ("uv_flux_jy", "image_flux_jy"):
         assert abs(line[k] - 1e-3) < 5 * line["expected_noise_jy"], (k, line[k])
+
+
+def test_work_directory_of_a_killed_run_is_named(first, tmp_path):
+    """A realisation's work directory left by a run killed outright (SIGKILL: no clean-up)
+    gets one warning naming it and its size when the next run starts; the run neither
+    removes it (it could be another run's, going on now) nor runs differently."""
+    out, res, d = first
+    shutil.copytree(out / "type1", tmp_path / "type1")
+    stale = tmp_path / "type1" / "seed7-abc123"
+    (stale / "sim.zarr").mkdir(parents=True)
+    (stale / "sim.zarr" / "chunk").write_bytes(b"\0" * 3_000_000)
+    with pytest.warns(XstackWarning, match=r"1 work directory .*seed7-abc123; 0\.003 GB") as w:
+        again = rr.reproduce(1, realizations=2, scale=SCALE, outdir=tmp_path, procedures=SMALL)
+    assert [x.message.option for x in w if isinstance(x.message, XstackWarning)] == ["outdir"]
+    assert stale.is_dir()
+    assert again.types[0].uv_flux_mean_jy == res.types[0].uv_flux_mean_jy
+
+    # none left: no warning
+    shutil.rmtree(stale)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", XstackWarning)
+        rr.reproduce(1, realizations=2, scale=SCALE, outdir=tmp_path, procedures=SMALL)

@@ -21,8 +21,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "flux and size for type 7, and compare mean and scatter with the paper's "
                     "Table 2. Resumable: each realisation is appended to "
                     "OUTDIR/typeN/realizations.jsonl and a new run does only the missing "
-                    "ones. The ALMA mosaics (types 8-10) CLEAN and subtract each pointing on "
-                    "its own (the paper jointly for 8 and 10).")
+                    "ones; a work directory OUTDIR/typeN/seedR-* left by a run killed "
+                    "outright is named in a warning. The ALMA mosaics (types 8-10) CLEAN "
+                    "and subtract each pointing on its own (the paper jointly for 8 and "
+                    "10).")
     p.add_argument("--type", dest="types", action="append", default=None, metavar="N|all",
                    help="data-set type 1-11, or all (the supported ones); repeatable; "
                         "required unless --report-only")

@@ -38,7 +38,9 @@ Resumable: every finished realisation appends one JSON line to
 ``OUTDIR/type{N}/realizations.jsonl`` (then flush and fsync); a new run reads the valid lines
 made with the same scale and procedure, ignores a truncated last line and runs only the
 missing seeds. Intermediate stores live in a
-temporary directory under ``OUTDIR/type{N}`` removed after each realisation. The first
+temporary directory ``OUTDIR/type{N}/seed{r}-*`` removed after each realisation, also when
+the run is interrupted (Ctrl-C, SIGTERM); one found when a run starts (a run killed outright,
+or one going on now in the same outdir) gets a warning naming it and its size. The first
 realisation also keeps ``profile_seed{r}.npz`` (uv-profile) and ``stamp_seed{r}.npz``
 (stacked image stamp ``stamp``, its ``psf``, ``pixel_arcsec``; for type 7 also
 ``stamp_filtered``, the stamp with the uv-plane filter) for figures.
@@ -56,6 +58,7 @@ import os
 import shutil
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,7 +68,7 @@ import numpy as np
 
 from xstack._atomic import discard
 from xstack._result import Result, json_ready
-from xstack.errors import OptionError, XstackError
+from xstack.errors import OptionError, XstackError, XstackWarning
 from xstack.reproduce.paper import PROCEDURES, TYPES, Procedure, paper_row
 
 #: Types whose procedure the runner implements: all eleven (the ALMA mosaics 8-10 CLEANed per
@@ -456,6 +459,30 @@ def _append(path: Path, rec: dict[str, Any]) -> None:
         os.fsync(f.fileno())
 
 
+def _stale_workdirs(workdir: Path) -> list[Path]:
+    """Work directories of realisations (``seed{r}-*``) left in ``workdir``: a run ends by
+    removing its own (also on Ctrl-C and SIGTERM), so one found before a run starts is that
+    of a run killed outright (SIGKILL, out of memory, a lost node) or of a run going on now."""
+    return sorted(p for p in workdir.glob("seed*-*") if p.is_dir())
+
+
+def _size_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def _warn_stale(workdir: Path) -> None:
+    stale = _stale_workdirs(workdir)
+    if not stale:
+        return
+    size = sum(_size_bytes(p) for p in stale)
+    names = ", ".join(p.name for p in stale[:3]) + (", ..." if len(stale) > 3 else "")
+    warnings.warn(XstackWarning(
+        f"{workdir}: {len(stale)} work director{'y' if len(stale) == 1 else 'ies'} of a "
+        f"killed or still running realisation ({names}; {size / 1e9:.2g} GB): remove "
+        f"{'it' if len(stale) == 1 else 'them'} unless another run uses this outdir",
+        option="outdir"), stacklevel=3)
+
+
 def _repair(path: Path, records: list[dict[str, Any]]) -> None:
     """Rewrite ``path`` with only the valid records when it holds a broken line, so that new
     lines are never appended after a partial one."""
@@ -584,6 +611,7 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         t0 = time.perf_counter()
         workdir = outdir / f"type{n}"
         workdir.mkdir(parents=True, exist_ok=True)
+        _warn_stale(workdir)
         path = workdir / JSONL
         proc = (procedures or {}).get(n)
         used = json_ready((proc or PROCEDURES[n]).to_dict())

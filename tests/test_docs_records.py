@@ -58,11 +58,12 @@ def test_records_are_of_todays_presets(n):
 @pytest.mark.parametrize("n", TYPES)
 def test_page_row_is_the_records(n):
     lines = _lines(n)
-    uv = np.array([r["uv_flux_jy"] for r in lines]) * 1e6
-    im = np.array([r["image_flux_jy"] for r in lines]) * 1e6
-    true = np.mean([r["true_flux_jy"] for r in lines]) * 1e6
-    noise = np.mean([r["expected_noise_jy"] for r in lines]) * 1e6
     row = _section_row(n)
+    per_jy = {"µJy": 1e6, "mJy": 1e3}[row[3]]  # the ALMA types 8-10 are in mJy
+    uv = np.array([r["uv_flux_jy"] for r in lines]) * per_jy
+    im = np.array([r["image_flux_jy"] for r in lines]) * per_jy
+    true = np.mean([r["true_flux_jy"] for r in lines]) * per_jy
+    noise = np.mean([r["expected_noise_jy"] for r in lines]) * per_jy
     assert row[1] == str(len(lines))
     assert row[4] == f"{true:.2f} ± {noise:.2f}"
     assert row[5] == f"{uv.mean():.2f} ± {uv.std(ddof=1):.2f} ({uv.mean() / uv.std(ddof=1):.1f})"

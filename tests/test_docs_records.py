@@ -32,8 +32,11 @@ def _section_row(n: int) -> list[str]:
     page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
     sections = page.split("\n## ")
     for sec in sections:
-        if sec.startswith("Full size with the simulator's flags") and f"| {n} | " in sec:
-            line = next(x for x in sec.splitlines() if x.startswith(f"| {n} | "))
+        if not sec.startswith("Full size with the simulator's flags"):
+            continue
+        # a row starts with the type; "| 10 | " inside a line is another type's R or value
+        line = next((x for x in sec.splitlines() if x.startswith(f"| {n} | ")), None)
+        if line is not None:
             return [c.strip() for c in line.strip("|").split("|")]
     raise AssertionError(f"no flagged section of docs/reproduction.md has a row of type {n}")
 

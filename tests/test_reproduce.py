@@ -125,8 +125,9 @@ def test_paper_rows_are_table_2(first):
     assert paper.PAPER_TABLE2[9]["uv_snr"] == 12.5
     sizes = paper.paper_row(7)["sizes"]
     assert sizes["uv_fwhm_arcsec"] == 1.50 and sizes["image_fwhm_arcsec"] == 1.55
-    # the procedure choices: 5000 m cut for 5-7, PSF fit for 7, mosaics for 8-10
-    assert {n for n, p in paper.PROCEDURES.items() if p.uvmin_m == 5000.0} == {5, 6, 7}
+    # the procedure choices: 5000 m cut for 5-7 and 11 (§4.1.5, §5: "for uv-stacking in data
+    # set 11 we are excluding the shortest baselines"), PSF fit for 7, mosaics for 8-10
+    assert {n for n, p in paper.PROCEDURES.items() if p.uvmin_m == 5000.0} == {5, 6, 7, 11}
     assert [n for n, p in paper.PROCEDURES.items() if p.fit_size] == [7]
     assert {n for n, p in paper.PROCEDURES.items() if p.mosaic} == {8, 9, 10}
 

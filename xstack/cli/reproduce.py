@@ -17,7 +17,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Run the paper's procedure (Lindroos et al. 2015, sections 2-4) for "
                     "data-set types over Monte Carlo realisations: simulate, image and CLEAN "
                     "the bright sources to the paper's threshold, subtract the CLEAN model, "
-                    "uv-stack (5000 m cut for types 5-7) and image-stack the targets, fit "
+                    "uv-stack (5000 m cut for types 5-7 and 11) and image-stack the targets, fit "
                     "flux and size for type 7, and compare mean and scatter with the paper's "
                     "Table 2. Resumable: each realisation is appended to "
                     "OUTDIR/typeN/realizations.jsonl and a new run does only the missing "

@@ -129,8 +129,9 @@ _ALMA = dict(cell_arcsec=0.2, clean_threshold_jy=2e-3, clean_min_flux_jy=2e-3,
 
 #: The paper's per-type procedure (§2 for imaging and CLEAN, §4 for the uv cut and fits).
 #: Type 3 is "based on type 2" (20 µJy threshold); type 4 raises it to 50 µJy and types 5-7
-#: and 11 are imaged "in the same manner" as type 3/4; type 11 is "otherwise based on type 5"
-#: but the paper names no uv cut for it.
+#: and 11 are imaged "in the same manner" as type 3/4; type 11 is "otherwise based on type 5",
+#: and "for uv-stacking in data set 11 we are excluding the shortest baselines" (§5, sparse
+#: array) without a length: type 5's 5000 m, the paper's only cut.
 PROCEDURES: dict[int, Procedure] = {
     1: Procedure(cell_arcsec=0.25, size=1440, clean_threshold_jy=20e-6),
     2: Procedure(cell_arcsec=0.5, size=720, clean_threshold_jy=20e-6),
@@ -143,7 +144,7 @@ PROCEDURES: dict[int, Procedure] = {
     8: Procedure(**_ALMA, size=800, mosaic="joint", pointing_size=256),
     9: Procedure(**_ALMA, size=256, mosaic="pointings"),
     10: Procedure(**_ALMA, size=800, mosaic="joint", pointing_size=256),
-    11: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6),
+    11: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0),
 }
 
 TYPES = tuple(range(1, 12))

@@ -26,7 +26,7 @@ as absent):
   uv-stacked flux of the first N targets of the catalog, N from :func:`subset_sizes`
   (10, 30, 100, 300, ... and all; nested subsets of the same residual data): Fig. 1, noise
   against the number of targets. ``"<n_targets>"`` is ``uv_flux_jy`` itself.
-* ``image_flux_filtered_jy`` (types with a uv cut, 5-7): the image-stacked flux with the
+* ``image_flux_filtered_jy`` (types with a uv cut, 5-7 and 11): the image-stacked flux with the
   §5.3 uv-plane filter at the cut (``filter_lowfreq="5000m"``): Fig. 12. With
   ``image_filter_response`` (added later) it is the filtered peak divided by that response
   (``ImstackResult.filter_response``), a flux density; older lines hold the filtered peak.

@@ -121,6 +121,9 @@ class Procedure:
 
 
 _VLA_WIDE = dict(cell_arcsec=0.5, size=4000)
+#: the wide VLA fields with Bondi et al. (2008) bright sources (types 5-7, 11): sources of
+#: 10 µJy and more CLEANed to 50 µJy/beam, uv-stacked beyond 5000 m (§4.1.5)
+_VLA_BRIGHT = dict(_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0)
 #: ALMA (§2.3): 0.2" pixels, CLEAN above 2 mJy to 2 mJy, 0.5 mJy/beam per pointing; position
 #: weights sigma_k = 1/A_N(S_k) in both stacks (§3.2: the ALMA stamps are too small for a
 #: local rms), i.e. W_k = A^2, xstack's ``"pb"`` weighting.
@@ -137,14 +140,13 @@ PROCEDURES: dict[int, Procedure] = {
     2: Procedure(cell_arcsec=0.5, size=720, clean_threshold_jy=20e-6),
     3: Procedure(**_VLA_WIDE, clean_threshold_jy=20e-6),
     4: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6),
-    5: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0),
-    6: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0),
-    7: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0,
-                 fit_size=True),
+    5: Procedure(**_VLA_BRIGHT),
+    6: Procedure(**_VLA_BRIGHT),
+    7: Procedure(**_VLA_BRIGHT, fit_size=True),
     8: Procedure(**_ALMA, size=800, mosaic="joint", pointing_size=256),
     9: Procedure(**_ALMA, size=256, mosaic="pointings"),
     10: Procedure(**_ALMA, size=800, mosaic="joint", pointing_size=256),
-    11: Procedure(**_VLA_WIDE, clean_threshold_jy=50e-6, clean_min_flux_jy=10e-6, uvmin_m=5000.0),
+    11: Procedure(**_VLA_BRIGHT),
 }
 
 TYPES = tuple(range(1, 12))

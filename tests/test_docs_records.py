@@ -73,3 +73,29 @@ def test_page_row_is_the_records(n):
     assert row[6] == f"{im.mean():.2f} ± {im.std(ddof=1):.2f} ({im.mean() / im.std(ddof=1):.1f})"
     offset = (uv.mean() - true) / (uv.std(ddof=1) / np.sqrt(len(uv)))
     assert row[10] == f"{offset:+.1f}"
+
+
+def _noise_row(n: int) -> list[str] | None:
+    """Type ``n``'s row of the page's expected-noise table, None if the table has none."""
+    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
+    sec = next(x for x in page.split("\n## ") if x.startswith("Expected noise: the paper's"))
+    line = next((x for x in sec.splitlines() if x.startswith(f"| {n} | ")), None)
+    return None if line is None else [c.strip() for c in line.strip("|").split("|")]
+
+
+@pytest.mark.parametrize("n", TYPES)
+def test_expected_noise_table_is_the_records(n):
+    """Thermal and map (eq. 9) expected noise and the scatters, as the lines say; every type
+    with lines is in the table."""
+    row = _noise_row(n)
+    assert row is not None, f"type {n} has lines but no row in the expected-noise table"
+    lines = _lines(n)
+    per_jy = {"µJy": 1e6, "mJy": 1e3}[row[2]]
+    col = lambda k: np.array([r[k] for r in lines], dtype=float) * per_jy  # noqa: E731
+    thermal, mapn = col("expected_noise_jy").mean(), col("image_stack_flux_err_jy").mean()
+    uv, im = col("uv_flux_jy").std(ddof=1), col("image_flux_jy").std(ddof=1)
+    assert row[1] == str(len(lines))
+    assert row[3:5] == [f"{thermal:.3f}", f"{mapn:.3f}"]
+    assert row[6:8] == [f"{uv:.3f}", f"{im:.3f}"]
+    if row[8] != "n/a":  # type 7's fluxes are fits
+        assert row[8:10] == [f"{uv / mapn:.2f}", f"{uv / thermal:.2f}"]

@@ -29,6 +29,7 @@ def _records(n, r, true, uv, im, rng, scale=0.05, **extra):
         rec = {"seed": k, "type": n, "scale": scale, "procedure": PROC, "true_flux_jy": true,
                "uv_flux_jy": float(uv[k]), "image_flux_jy": float(im[k]),
                "expected_noise_jy": 0.4e-6 + 0.01e-6 * k, "seconds": 10.0 + k,
+               "image_stack_flux_err_jy": 0.45e-6 + 0.03e-6 * k,
                "profile": {"re_jy": [float(x) for x in true + 1e-6 * rng.normal(size=NB)],
                            "sum_weight": [1.0] * NB}}
         for key, values in extra.items():
@@ -246,6 +247,20 @@ def test_cli_report_only(run_dir, tmp_path, capsys):
         assert len(err) == 1 and err[0].startswith("error: no realisations in")
     assert main(["reproduce", "--outdir", str(tmp_path)]) == 1
     assert "--type is required" in capsys.readouterr().err
+
+
+def test_noise_table_is_plain_numpy(run_dir):
+    """Expected noise two ways (thermal, map eq. 9) beside the paper's and the scatters."""
+    _, data, _, text = run_dir
+    block = text.split("thermal and from the residual map", 1)[1]
+    row = next(x for x in block.splitlines() if x.startswith("| 1 |"))
+    row = [c.strip() for c in row.strip("|").split("|")]
+    recs = data[1]
+    col = lambda k: np.array([r[k] for r in recs]) / 1e-6  # noqa: E731
+    thermal, mapn = col("expected_noise_jy").mean(), col("image_stack_flux_err_jy").mean()
+    uv, im = col("uv_flux_jy").std(ddof=1), col("image_flux_jy").std(ddof=1)
+    assert row == ["1", "8", "µJy", f"{thermal:.3f}", f"{mapn:.3f}", "0.470", f"{uv:.3f}",
+                   f"{im:.3f}", f"{uv / mapn:.2f}", f"{uv / thermal:.2f}"]
 
 
 def _paired_row(text, n):

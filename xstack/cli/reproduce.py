@@ -125,6 +125,10 @@ def print_tables(payload: dict[str, Any]) -> None:
                f"  {'':18s}{'xstack':<30s}paper (Table 2)",
                f"  {'expected':18s}{fig(t['true_flux_jy'], t['expected_noise_jy']):<30s}"
                f"{fig(p['expected_flux_jy'], p['expected_noise_jy'])}",
+               # the paper's expected noise is this one (eq. 9, sigma_k from the residual map)
+               f"  {'noise, map (eq. 9)':18s}"
+               f"{fig(t.get('expected_map_noise_jy'), like=like):<30s}"
+               f"{fig(p['expected_noise_jy'], like=like)}",
                f"  {'uv-stacking':18s}{ours_uv:<30s}"
                f"{fig(p['uv_flux_jy'], p['uv_scatter_jy'])} ({p['uv_snr']:.1f})",
                f"  {'image-stacking':18s}{ours_im:<30s}"

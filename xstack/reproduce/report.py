@@ -23,7 +23,13 @@ import numpy as np
 from xstack.coords import SPEED_OF_LIGHT
 from xstack.errors import NoDataError
 from xstack.reproduce.paper import MJY, PAPER_TYPE7_SIZES, PROCEDURES, TYPES, UJY, paper_row
-from xstack.reproduce.run import JSONL, PROFILE_EDGES_KLAMBDA, made_the_same_way, read_records
+from xstack.reproduce.run import (
+    JSONL,
+    MAP_NOISE_KEY,
+    PROFILE_EDGES_KLAMBDA,
+    made_the_same_way,
+    read_records,
+)
 
 #: Display unit of each type, as Table 2: µJy for the VLA types, mJy for the ALMA ones (8-10).
 UNITS: dict[int, tuple[float, str]] = {n: (MJY, "mJy") if n in (8, 9, 10) else (UJY, "µJy")
@@ -39,6 +45,7 @@ _FLUX_FIGS, _STAMP_FIG, _PROFILE_FIGS, _SIZE_FIG, _NOISE_FIG, _FILTER_FIG = (
 
 
 # ---------------------------------------------------------------------------- the numbers
+
 
 def _values(records: Sequence[dict[str, Any]], key: str) -> np.ndarray:
     """The finite values of ``key`` over ``records`` (a failed fit's None is left out)."""
@@ -97,6 +104,7 @@ def type_numbers(n: int, records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "scale": records[0].get("scale") if records else None,
         "true_flux_jy": true_flux,
         "expected_noise_jy": _stats(_values(records, "expected_noise_jy"))[1],
+        "expected_map_noise_jy": _stats(_values(records, MAP_NOISE_KEY))[1],
         "uv_count": r_uv, "uv_flux_mean_jy": uv_mean, "uv_flux_scatter_jy": uv_std,
         "uv_snr": _ratio(uv_mean, uv_std),
         "image_count": r_im, "image_flux_mean_jy": im_mean, "image_flux_scatter_jy": im_std,
@@ -200,6 +208,26 @@ def _paired_table(data: dict[int, Sequence[dict[str, Any]]]) -> list[str]:
                       f"{diff:+.3f} ({'n/a' if not math.isfinite(se) else f'{se:.3f}'})",
                       _num(p[f"{key}_over_uv"], 4)]
         lines.append(f"| {n} | {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _noise_table(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """Expected noise two ways beside the paper's and the measured scatters."""
+    lines = ["| type | R | unit | expected: thermal | expected: map (eq. 9) | paper: expected "
+             "| uv scatter | image scatter | uv scatter / map | uv scatter / thermal |",
+             "|---:|---:|:--|--:|--:|--:|--:|--:|--:|--:|"]
+    for t in rows:
+        unit, label = UNITS[t["type"]]
+        cells = [t["expected_noise_jy"], t["expected_map_noise_jy"],
+                 t["paper"]["expected_noise_jy"], t["uv_flux_scatter_jy"],
+                 t["image_flux_scatter_jy"]]
+        cells = [_num(None if v is None else v / unit, 3) for v in cells]
+        # a fit's flux (type 7) has neither noise: its ratios would say nothing
+        fit = t["type"] in PROCEDURES and PROCEDURES[t["type"]].fit_size
+        ratios = [_num(float("nan") if fit else _ratio(t["uv_flux_scatter_jy"], t[k]))
+                  for k in ("expected_map_noise_jy", "expected_noise_jy")]
+        lines.append(f"| {t['type']} | {t['realizations']} | {label} | "
+                     + " | ".join(cells + ratios) + " |")
     return lines
 
 
@@ -602,7 +630,16 @@ def write_report(outdir: str | os.PathLike, out_md: str | os.PathLike | None = N
     for n, note in notes.items():
         if note:
             md.append(f"Type {n}: {note}.")
-    md += ["### Image-stacking against uv-stacking on the same realisations", "",
+    md += ["### Expected noise: thermal and from the residual map", "",
+           *_noise_table(rows), "",
+           "*thermal*: the uv stack's noise from the visibility weights (the table above's "
+           "*expected*). *map (eq. 9)*: the paper's definition of its expected noise, eq. 9 "
+           "with σ_k from the CLEANed residual map — the image stack's noise propagated from "
+           "the stamps' local σ_k and its weights, mean over the realisations; it includes "
+           "what CLEAN left. *uv scatter / map*: near 1 where the expected noise predicts the "
+           "uv stack's; with R realisations a scatter is known to ±1/√(2(R−1)) (±24 % for "
+           "R = 10). Type 7's fluxes are fits, whose noise neither column is (its ratios n/a).", "",
+           "### Image-stacking against uv-stacking on the same realisations", "",
            *_paired_table(data), "",
            "Per realisation, the image-stacked flux minus the uv-stacked one, averaged over "
            "the realisations with both (SE: their scatter / √R; the noise the two stacks "

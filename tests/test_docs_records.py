@@ -99,3 +99,32 @@ def test_expected_noise_table_is_the_records(n):
     assert row[6:8] == [f"{uv:.3f}", f"{im:.3f}"]
     if row[8] != "n/a":  # type 7's fluxes are fits
         assert row[8:10] == [f"{uv / mapn:.2f}", f"{uv / thermal:.2f}"]
+
+
+@pytest.mark.parametrize("n", TYPES)
+def test_summary_ratios_are_the_records(n):
+    """The summary's ratios of each type, from the lines with plain numpy and Table 2."""
+    from xstack.reproduce.paper import PAPER_TABLE2
+
+    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
+    sec = next(x for x in page.split("\n## ") if x.startswith("Summary: the full-size runs"))
+    line = next((x for x in sec.splitlines() if x.startswith(f"| {n} | ")), None)
+    assert line is not None, f"type {n} has lines but no row in the summary"
+    row = [c.strip() for c in line.strip("|").split("|")]
+    lines = _lines(n)
+    paper = PAPER_TABLE2[n]
+    uv = np.array([r["uv_flux_jy"] for r in lines])
+    im = np.array([r["image_flux_jy"] for r in lines])
+    true = np.mean([r["true_flux_jy"] for r in lines])
+    offset = (uv.mean() - true) / (uv.std(ddof=1) / np.sqrt(len(uv)))
+    snr = lambda a: a.mean() / a.std(ddof=1)  # noqa: E731
+    assert row[1] == str(len(lines))
+    assert row[2] == f"{offset:+.1f}"
+    assert row[3] == f"{uv.std(ddof=1) / paper['uv_scatter_jy']:.2f}"
+    assert row[4] == f"{im.mean() / uv.mean():.3f}"
+    assert row[5] == f"{paper['image_flux_jy'] / paper['uv_flux_jy']:.3f}"
+    if "image_flux_subpixel_jy" in lines[0]:
+        sub = np.array([r["image_flux_subpixel_jy"] for r in lines])
+        assert row[6] == f"{sub.mean() / uv.mean():.3f}"
+    assert row[7] == f"{snr(uv) / snr(im):.2f}"
+    assert row[8] == f"{paper['uv_snr'] / paper['image_snr']:.2f}"

@@ -249,6 +249,25 @@ def test_cli_report_only(run_dir, tmp_path, capsys):
     assert "--type is required" in capsys.readouterr().err
 
 
+def test_ratios_table_is_plain_numpy(run_dir):
+    """The paper's findings as ratios, type 1: xstack's from the lines, the paper's from the
+    text of Table 2 (uv 6.02 ± 0.38 (15.8), image 5.89 (12.0))."""
+    _, data, _, text = run_dir
+    block = text.split("The paper's findings as ratios", 1)[1]
+    row = next(x for x in block.splitlines() if x.startswith("| 1 |"))
+    row = [c.strip() for c in row.strip("|").split("|")]
+    recs = data[1]
+    uv = np.array([r["uv_flux_jy"] for r in recs])
+    im = np.array([r["image_flux_jy"] for r in recs])
+    sub = np.array([r["image_flux_subpixel_jy"] for r in recs])
+    off = (uv.mean() - 6e-6) / (uv.std(ddof=1) / math.sqrt(uv.size))
+    snr = lambda a: a.mean() / a.std(ddof=1)  # noqa: E731
+    assert row == ["1", "8", f"{off:+.1f}", f"{uv.std(ddof=1) / 0.38e-6:.2f}",
+                   f"{im.mean() / uv.mean():.3f}", f"{5.89 / 6.02:.3f}",
+                   f"{sub.mean() / uv.mean():.3f}", f"{snr(uv) / snr(im):.2f}",
+                   f"{15.8 / 12.0:.2f}"]
+
+
 def test_noise_table_is_plain_numpy(run_dir):
     """Expected noise two ways (thermal, map eq. 9) beside the paper's and the scatters."""
     _, data, _, text = run_dir

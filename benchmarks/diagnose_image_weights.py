@@ -15,7 +15,8 @@ the pixelisation of nearest-pixel alignment, which sub-pixel alignment removes):
 
 Measured 2026-12-05 on seed 2 (2-core machine, ~8 min): uv_all 0.938, im_sub 0.715,
 im_sub_uvweights 0.932, uv_all_noweights 0.880, im_sub_noweights 0.883 µJy (true 1.014):
-the image deficit is the plain standard deviation's weights (docs/reproduction.md, type 6).
+on seed 5 1.049 (0.864 on all baselines), 0.688, 0.853, 0.917, 0.903: the image deficit
+is the plain standard deviation's weights (docs/reproduction.md, type 6).
 
 Usage::
 

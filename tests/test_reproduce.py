@@ -224,8 +224,12 @@ def test_cli_json_and_table(tmp_path, capsys):
     (map_line,) = [x for x in text.splitlines() if "noise, map (eq. 9)" in x]
     assert map_line.rstrip().endswith("0.470 µJy"), map_line
     assert len(_lines(tmp_path, 2)) == 1
-    # --overwrite forgets the earlier realisation and runs it again
-    assert main([*argv, "--overwrite", "--json"]) == 0
+    # --overwrite forgets the earlier realisation and runs it again; without a bar (not a
+    # terminal: a batch job's log) each realisation is a line on stderr as it finishes
+    assert main([a for a in argv if a != "-q"] + ["--overwrite", "--json"]) == 0
+    err = capsys.readouterr().err
+    (done,) = [x for x in err.splitlines() if x.startswith("type 2 seed 0: uv ")]
+    assert done.endswith("s; 1 of 1 new)") and "µJy" in done, done
     (again,) = _lines(tmp_path, 2)
     assert again["seconds"] != line["seconds"]
     # same seed, same data; multithreaded gridding sums in another order (~1e-6 relative)

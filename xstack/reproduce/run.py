@@ -564,6 +564,7 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
               scale: float = 1.0, outdir: str | os.PathLike = "xstack-reproduce",
               progress: bool = False, client: Any = None,
               on_type: Callable[[TypeSummary], None] | None = None,
+              on_realization: Callable[[dict[str, Any], int, int], None] | None = None,
               procedures: dict[int, Procedure] | None = None) -> ReproduceResult:
     """Reproduce the paper's Table 2 for data-set ``types`` over Monte Carlo realisations.
 
@@ -592,6 +593,9 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         each), their lines appended as they complete.
     on_type
         Called with each type's summary as soon as the type is done.
+    on_realization
+        Called as ``on_realization(line, k, m)`` with each new realisation's line as soon
+        as it is appended, the k-th of the m this call runs for its type.
     procedures
         Per type, a :class:`~xstack.reproduce.paper.Procedure` that replaces the paper's
         (e.g. a smaller image for a quick check); the default is the paper's.
@@ -642,10 +646,13 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         bar = progress_iter(range(len(missing)), f"type {n}", enabled=progress,
                             total=len(missing))
 
-        for rec in _results(n, missing, float(scale), workdir, keep, proc, client):
+        for k, rec in enumerate(_results(n, missing, float(scale), workdir, keep, proc,
+                                         client), start=1):
             rec = dict(rec, type=n, **made_by)
             _append(path, rec)
             records.append(rec)
+            if on_realization is not None:
+                on_realization(rec, k, len(missing))
             if hasattr(bar, "update"):
                 bar.update(1)
         if hasattr(bar, "close"):

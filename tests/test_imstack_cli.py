@@ -46,6 +46,31 @@ def test_cli_json_and_outputs(field, tmp_path, capsys):
     assert payload["method"] == "median" and payload["filter_lowfreq"] == 3
 
 
+def test_cli_noise_options_reach_the_weights_and_the_header(field, tmp_path, capsys):
+    from astropy.io import fits
+
+    from xstack.imstack.stack import stack_images
+
+    _, image, cat = field
+    out = tmp_path / "n.fits"
+    assert main(["imstack", str(image), str(cat), str(out), "--stamp-size", "32", "--json",
+                 "--noise-estimator", "std", "--noise-stamp-size", "41", "--no-png"]) == 0
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["noise_estimator"] == "std" and payload["noise_stamp_size"] == 41
+    with fits.open(out) as hdul:
+        assert hdul[0].header["STNOISE"] == "std" and hdul[0].header["STNOISEN"] == 41
+    same = stack_images(image, cat, stamp_size=32, noise_estimator="std", noise_stamp_size=41)
+    assert payload["flux_err_jy"] == pytest.approx(same.flux_err_jy, rel=1e-12)
+    default = stack_images(image, cat, stamp_size=32)
+    assert default.noise_estimator == "clipped" and default.noise_stamp_size == 85
+    assert payload["flux_err_jy"] != pytest.approx(default.flux_err_jy, rel=1e-9)
+    with pytest.raises(SystemExit) as exc:
+        main(["imstack", str(image), str(cat), str(tmp_path / "x.fits"), "--noise-estimator",
+              "rms"])
+    assert exc.value.code == 2 and "invalid choice" in capsys.readouterr().err
+    assert not (tmp_path / "x.fits").exists()
+
+
 def test_cli_errors_write_nothing(field, tmp_path, capsys):
     d, image, cat = field
     out = tmp_path / "bad.fits"

@@ -162,15 +162,18 @@ def test_options_describe_arrays_and_objects():
 
 @pytest.mark.filterwarnings("ignore::xstack.errors.XstackWarning")  # no XSPBCOR: as is
 def test_numbers_are_those_of_the_code_before_the_split(field_path):
-    # recorded with the code before the split (commit 8071987) on this field
+    # recorded with the code before the split (commit 8071987) on this field, whose sigma_k
+    # was the plain std on the stamp itself: still there as noise_estimator="std" with
+    # noise_stamp_size = stamp_size
     path, pos = field_path
-    res = stack_images(path, pos, stamp_size=32)
+    old = {"noise_estimator": "std", "noise_stamp_size": 32}
+    res = stack_images(path, pos, stamp_size=32, **old)
     assert res.flux_jy == pytest.approx(0.966562194188727, rel=1e-12)
     assert res.flux_err_jy == pytest.approx(0.004534809533223295, rel=1e-12)
-    res = stack_images(path, pos, stamp_size=32, subpixel="fourier", weighting="none")
+    res = stack_images(path, pos, stamp_size=32, subpixel="fourier", weighting="none", **old)
     assert res.flux_jy == pytest.approx(0.9983982569434138, rel=1e-12)
     assert res.flux_err_jy == pytest.approx(0.005240659509830136, rel=1e-12)
-    res = stack_images(path, pos, stamp_size=32, filter_lowfreq=3, beam_mask_arcsec=4.0)
+    res = stack_images(path, pos, stamp_size=32, filter_lowfreq=3, beam_mask_arcsec=4.0, **old)
     # the filtered peak and its error as recorded then; since the filter response (the stacked
     # PSF's filtered / unfiltered peak) divides both, flux_jy is a flux again (~1.0 here)
     assert res.flux_jy * res.filter_response == pytest.approx(0.7991689397730652, rel=1e-12)

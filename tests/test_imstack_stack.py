@@ -102,7 +102,9 @@ def test_sigma2_weights_follow_eq3_and_eq5(tmp_path):
     img += rng.normal(size=img.shape) * noise_map
     path = write_image(tmp_path / "noisy.fits", img, w, BEAM)
     ra, dec = w.pixel_to_world_values(px, py)
-    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="sigma2", subpixel="fourier")
+    # the paper's sigma_k: the plain std on the stamp itself (the default is checked below)
+    res = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="sigma2", subpixel="fourier",
+                       noise_estimator="std", noise_stamp_size=32)
     cube = res.cube
     # independent sigma_k: std (ddof 1) outside a circle of radius BMAJ in arcsec offsets
     r = np.hypot(cube.x.values[None, :], cube.y.values[:, None])
@@ -118,10 +120,134 @@ def test_sigma2_weights_follow_eq3_and_eq5(tmp_path):
     np.testing.assert_allclose(res.stacked.values, manual, rtol=1e-10)
     assert res.flux_err_jy == pytest.approx(1 / np.sqrt(wk.sum()), rel=1e-10)  # eq. 5
     np.testing.assert_allclose(res.weights[:, 0], wk)
-    unweighted = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier")
+    unweighted = stack_images(path, np.c_[ra, dec], stamp_size=32, weighting="none", subpixel="fourier",
+                              noise_estimator="std", noise_stamp_size=32)
     assert res.flux_err_jy < 0.75 * unweighted.flux_err_jy
     assert abs(res.flux_jy - 1.0) < 4 * res.flux_err_jy
     assert res.stamp_rms_jy == pytest.approx(res.flux_err_jy, rel=0.15)
+
+
+def _clipped_std_numpy(v: np.ndarray, k: float = 3.0) -> float:
+    """Plain-numpy 3-sigma clipping about the median, iterated to convergence, divided by the
+    std of a unit Gaussian truncated where the clipping of pure noise converges."""
+    from scipy import optimize, stats
+
+    v = v[np.isfinite(v)]
+    while True:
+        med, sd = np.median(v), np.std(v, ddof=1)
+        keep = v[(v >= med - k * sd) & (v <= med + k * sd)]
+        if keep.size == v.size:
+            break
+        v = keep
+    # truncated-Gaussian std at the fixed point c = k * std(c), from scipy, not from xstack
+    def trunc_std(c):
+        return np.sqrt(stats.truncnorm(-c, c).var())
+    c = optimize.brentq(lambda c: c - k * trunc_std(c), 1.0, 10.0)
+    return float(np.std(v, ddof=1) / trunc_std(c))
+
+
+def _two_noise_field(tmp_path, rng, artefacts=False, flux=1.0):
+    """12 x 12 sources of ``flux`` Jy 40 pixels apart on noise 0.05 (left half) and 0.2 Jy/beam
+    (right half); with ``artefacts`` a 3 Jy/beam point 12 pixels east of every other source
+    (a CLEAN residual; 28 pixels from the next)."""
+    cell, n_side, spacing = 0.5, 12, 40
+    n = 2 * spacing + spacing * (n_side - 1) + 1
+    w = sin_wcs(n, cell)
+    base = spacing + spacing * np.arange(n_side, dtype=np.float64)
+    gx, gy = np.meshgrid(base, base)
+    px = gx.ravel() + rng.uniform(-0.5, 0.5, gx.size)
+    py = gy.ravel() + rng.uniform(-0.5, 0.5, gy.size)
+    img = render(n, cell, px, py, np.full(px.size, flux), BEAM)
+    near = np.arange(px.size) % 2 == 0
+    if artefacts:
+        img += render(n, cell, np.round(px[near]) + 12, np.round(py[near]),
+                      np.full(near.sum(), 3.0), BEAM)
+    noise_map = np.where(np.arange(n)[None, :] < n // 2, 0.05, 0.2) * np.ones((n, 1))
+    img += rng.normal(size=img.shape) * noise_map
+    path = write_image(tmp_path / "noisy.fits", img, w, BEAM)
+    ra, dec = w.pixel_to_world_values(px, py)
+    return path, img, np.c_[ra, dec], px, py, near, cell, n
+
+
+def test_default_sigma_k_is_the_clipped_std_on_300_beams_like_the_uv_stack(tmp_path):
+    from xstack.uvstack.localnoise import measure_local_noise
+
+    # targets below the noise, as stacking's are: the ~4 neighbours in each noise stamp then
+    # do not raise it (at 0.1 Jy, 2 sigma on the quiet half, they add 1.4 %; at 1 Jy, 3 %)
+    path, img, pos, px, py, _, cell, n = _two_noise_field(tmp_path, np.random.default_rng(6),
+                                                          flux=0.02)
+    res = stack_images(path, pos, stamp_size=32, subpixel="fourier")
+    # the paper's ~300 beam areas: 300 x (pi / 4 ln 2) BMAJ BMIN / cell^2 pixels, side made odd
+    side = int(np.ceil(np.sqrt(300 * np.pi / (4 * np.log(2)) * BEAM[0] * BEAM[1] / cell**2))) | 1
+    assert res.noise_stamp_size == side == 85
+    assert res.noise_estimator == "clipped"
+    # independent: cut each noise stamp from the image array at the nearest pixel, leave out
+    # the circle of radius BMAJ, clip in plain numpy
+    h = side // 2
+    off = np.arange(side) - h
+    outside = np.hypot(off[None, :], off[:, None]) * cell > BEAM[0]
+    want = []
+    for x, y in zip(np.floor(px + 0.5).astype(int), np.floor(py + 0.5).astype(int)):
+        st = np.full((side, side), np.nan)
+        y0, x0 = y - h, x - h
+        ys, xs = slice(max(y0, 0), min(y0 + side, n)), slice(max(x0, 0), min(x0 + side, n))
+        st[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = img[ys, xs]
+        want.append(_clipped_std_numpy(st[outside]))
+    # (the kernel's running sums agree with numpy's std to ~1e-8)
+    np.testing.assert_allclose(res.cube.sigma.values, want, rtol=1e-7)
+    np.testing.assert_allclose(res.cube.weight.values, 1 / np.asarray(want) ** 2, rtol=2e-7)
+    # the uv stack's noise_image weights are the same numbers (paper §3.3: "the same local
+    # noise estimators")
+    uv = measure_local_noise(path, pos)
+    np.testing.assert_allclose(res.cube.sigma.values, uv.sigma, rtol=1e-12)
+    # and the noise levels are the truth's
+    left = px < n // 2
+    assert np.median(res.cube.sigma.values[left]) == pytest.approx(0.05, rel=0.02)
+    assert np.median(res.cube.sigma.values[~left]) == pytest.approx(0.2, rel=0.02)
+    assert res.flux_err_jy == pytest.approx(1 / np.sqrt(np.sum(1 / np.asarray(want) ** 2)), rel=1e-7)
+    assert abs(res.flux_jy - 0.02) < 4 * res.flux_err_jy
+
+
+def test_clipped_sigma_k_ignores_a_clean_residual_the_plain_std_counts(tmp_path):
+    # half the targets have a 3 Jy/beam residual 6" away, inside their 40-pixel stamps (and
+    # outside their neighbours'): the paper's plain std on the stamp calls it noise and
+    # down-weights them; the clipped std on ~300 beams still sees the noise
+    path, _, pos, px, _, near, _, n = _two_noise_field(tmp_path, np.random.default_rng(11),
+                                                       artefacts=True)
+    truth = np.where(px < n // 2, 0.05, 0.2)
+    plain = stack_images(path, pos, stamp_size=40, noise_estimator="std", noise_stamp_size=40)
+    clipped = stack_images(path, pos, stamp_size=40)
+    # away from the step in the noise (a noise stamp of 85 pixels across it measures a mix:
+    # the price of the larger stamp, where the noise varies on scales below ~17 beams)
+    away = np.abs(px - n // 2) > 45
+    ratio_plain = (plain.cube.sigma.values / truth)[away]
+    ratio_clip = (clipped.cube.sigma.values / truth)[away]
+    near = near[away]
+    assert np.median(ratio_plain[near]) > 1.5             # the residual counted as noise
+    assert np.median(ratio_plain[~near]) == pytest.approx(1.0, abs=0.05)
+    # the 1 Jy targets' wings lift it by ~3 % (see above); ~0.01 scatter from ~7000 pixels
+    assert np.all(np.abs(ratio_clip - 1.03) < 0.06)
+    assert np.median(ratio_clip[near]) == pytest.approx(np.median(ratio_clip[~near]), abs=0.02)
+    # so the weights stop depending on the residual: the down-weighting it caused is gone
+    # (weights relative to the truth's 1/sigma^2)
+    w_plain = plain.cube.weight.values[away] * truth[away] ** 2
+    w_clip = clipped.cube.weight.values[away] * truth[away] ** 2
+    assert np.median(w_plain[near]) / np.median(w_plain[~near]) < 0.5
+    assert np.median(w_clip[near]) / np.median(w_clip[~near]) == pytest.approx(1.0, abs=0.05)
+
+
+def test_noise_options_are_checked(tmp_path):
+    path, _, pos, *_ = _two_noise_field(tmp_path, np.random.default_rng(1))
+    with pytest.raises(XstackError, match="noise_estimator must be one of clipped, mad, std"):
+        stack_images(path, pos, noise_estimator="rms")
+    with pytest.raises(XstackError, match="noise_stamp_size must be an integer >= 5"):
+        stack_images(path, pos, noise_stamp_size=3)
+    with pytest.raises(XstackError, match="noise stamp size 9999 is larger than an image"):
+        stack_images(path, pos, noise_stamp_size=9999)
+    with pytest.raises(XstackError, match="inside the central mask"):
+        stack_images(path, pos, stamp_size=64, noise_stamp_size=7)
+    mad = stack_images(path, pos, stamp_size=32, noise_estimator="mad", noise_stamp_size=65)
+    assert mad.noise_stamp_size == 65 and mad.to_dict()["noise_estimator"] == "mad"
 
 
 @pytest.mark.parametrize("subpixel", [False, "fourier"])

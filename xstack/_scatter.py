@@ -44,9 +44,8 @@ import numba
 import numpy as np
 
 from xstack._cluster import cap_numba_threads
+from xstack._vocabulary import MAD_TO_SIGMA
 
-#: sigma of a Gaussian = MAD_TO_SIGMA * median absolute deviation
-MAD_TO_SIGMA = 1.482602218505602
 #: Fewest difference pairs for an estimate of one (baseline, correlation); below it the
 #: estimate is NaN (relative error of sigma^2 from 16 pairs ~ 40 %, from 100 pairs ~ 16 %).
 MIN_PAIRS = 16

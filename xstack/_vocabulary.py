@@ -23,6 +23,11 @@ IMSTACK_METHODS = ("mean", "median")
 IMSTACK_WEIGHTINGS = ("sigma2", "pb", "none", "column")
 SUBPIXEL_METHODS = ("fourier", "spline")
 CUBE_FORMATS = ("zarr", "fits")
+#: estimators of the local noise sigma_k (imstack and the uv stack's noise_image)
+LOCAL_NOISE_ESTIMATORS = ("clipped", "mad", "std")
+
+#: sigma of a Gaussian = MAD_TO_SIGMA x its median absolute deviation: 1 / Phi^-1(3/4)
+MAD_TO_SIGMA = 1.482602218505602
 
 # noise (xstack.noise.estimate)
 NOISE_METHODS = ("analytic", "mc", "random", "bootstrap")

@@ -48,6 +48,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    dest="beam_mask_arcsec",
                    help=f"radius of the central mask for sigma_k ({_types.ANGLE_HELP}; "
                         "default: BMAJ)")
+    p.add_argument("--noise-estimator", choices=V.LOCAL_NOISE_ESTIMATORS, default="clipped",
+                   help="sigma_k of the 1/sigma_k^2 weights: 3-sigma clipped std (default, as "
+                        "uvstack --noise-image), median absolute deviation, or the paper's "
+                        "plain std (counts CLEAN residuals near a target as noise)")
+    p.add_argument("--noise-stamp-size", type=int, default=None, metavar="PIXELS",
+                   help="side of the square sigma_k is measured on (default: ~300 beam areas, "
+                        "paper section 3.2; the stamp size for an image without a beam)")
     p.add_argument("--filter", type=_types.filter_cells_or_distance, default=None,
                    dest="filter_lowfreq",
                    metavar="N|DIST",
@@ -121,6 +128,9 @@ def run(args: argparse.Namespace) -> int:
         raise XstackError(f"{out}: the output must be a .fits file name (got the arguments in "
                           "the wrong order?)")
     if args.line_frequency is not None:
+        if args.noise_estimator != "clipped" or args.noise_stamp_size is not None:
+            raise XstackError("--noise-estimator and --noise-stamp-size are for continuum "
+                              "stacks (a line stack's channel noise is the std of its stamp)")
         return _run_line(args, images, catalog, out)
     for flag, given in (("--continuum-subtract", args.continuum_subtract),
                         ("--line-free", args.line_free), ("--frame", args.frame)):
@@ -132,6 +142,8 @@ def run(args: argparse.Namespace) -> int:
                           psf=_one_or_list(args.psf),
                           image_corrected=_corrected(args.image_corrected),
                           beam_mask_arcsec=args.beam_mask_arcsec,
+                          noise_estimator=args.noise_estimator,
+                          noise_stamp_size=args.noise_stamp_size,
                           filter_lowfreq=args.filter_lowfreq,
                           skip_outside=args.skip_outside, out=out, cube_format=args.cube_format,
                           plot=not args.no_png, overwrite=args.overwrite,

@@ -89,6 +89,13 @@ class Procedure:
         Position weights 1/sigma_k^2 (eq. 2) in both: sigma_k the local noise of the residual
         map around position k; uv-stacking uses "the same local noise estimators as in
         image-stacking" (§3.3). ALMA (8-10): ``"pb"``, sigma_k = 1/A_N(S_k) (§3.2).
+    image_noise_estimator
+        How the image stack measures sigma_k (``stack_images(noise_estimator=)``, on stamps
+        of ~300 beam areas): ``"clipped"``, the estimator the uv stack's ``noise_image``
+        weights use, so both stacks weigh the positions alike (§3.3: "the same local noise
+        estimators"). Records made before it existed (no such key in their procedure) used
+        the plain standard deviation on the 64-pixel stamp, which made type 6's image stack
+        22 % low (docs/reproduction.md).
     thermal_noise_jy
         The thermal noise limit at the center of the full-size data set (Jy/beam): 2.1 µJy
         for the VLA types (§2.2; type 11 "similar", §2.4), 0.5 mJy for one ALMA pointing
@@ -112,6 +119,7 @@ class Procedure:
     epsilon: float = 1e-4
     thermal_noise_jy: float = 2.1e-6
     pointing_size: int | None = None
+    image_noise_estimator: str = "clipped"
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

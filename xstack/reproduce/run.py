@@ -249,6 +249,7 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
             # out positions in no pointing); one pointing's image covers all its targets
             return xstack.stack_images([m for m, _ in maps], targets,
                                        weighting=proc.image_weighting,
+                                       noise_estimator=proc.image_noise_estimator,
                                        psf=[p for _, p in maps], plot=False,
                                        skip_outside=bool(proc.mosaic), **kw)
 

@@ -26,29 +26,20 @@ from typing import Any
 
 import numpy as np
 
+from xstack import _vocabulary
 from xstack.errors import XstackError
 from xstack.imaging.fitsio import pb_corrected_from_header
 from xstack.imstack import kernels
 from xstack.imstack.io import ImageInfo, read_image
 
-#: ``clipped``: iterative 3-sigma clipping about the median, the std of what remains,
-#: corrected for the truncation (the default). ``mad``: 1.4826 x the median absolute
-#: deviation (breakdown point 50 %, but ~1.6x the scatter of the std on Gaussian noise).
-#: ``std``: the plain standard deviation of the paper, which also counts any source or
-#: artefact in the stamp as noise.
-ESTIMATORS = ("clipped", "mad", "std")
-
-#: Clipping threshold (in units of the current std about the median) of ``clipped``.
-CLIP_SIGMA = 3.0
-
-#: Most clipping iterations; the window only shrinks, so it converges in a few.
-CLIP_MAXITER = 10
-
-#: sigma / MAD of a Gaussian: 1 / Phi^-1(3/4).
-MAD_TO_SIGMA = 1.482602218505602
-
-#: A stamp covers about this many beam areas by default (paper §3.2: "approximately 300").
-STAMP_BEAM_AREAS = 300.0
+# the estimators and their constants live with the other stamp kernels (image-stacking
+# measures its weights the same way); re-exported here, their long-standing home
+ESTIMATORS = kernels.NOISE_ESTIMATORS
+CLIP_SIGMA = kernels.CLIP_SIGMA
+CLIP_MAXITER = kernels.CLIP_MAXITER
+CLIP_CORRECTION = kernels.CLIP_CORRECTION
+MAD_TO_SIGMA = _vocabulary.MAD_TO_SIGMA
+STAMP_BEAM_AREAS = kernels.STAMP_BEAM_AREAS
 
 #: Default stamp (pixels) and mask radius (pixels) for an image without a restoring beam,
 #: the paper's 64 x 64 stamps (made odd, 65) and imstack's 5-pixel fallback mask.
@@ -58,27 +49,6 @@ DEFAULT_MASK_PIXELS = 5.0
 #: Least fraction of a stamp's pixels outside the mask that must be finite (on the image and
 #: not blanked). A position at the very corner of an image keeps about a quarter of its stamp.
 MIN_FRACTION = 0.25
-
-
-def _clip_correction(k: float) -> float:
-    """std of N(0, 1) restricted to |x| < c, at the fixed point c = k std(c).
-
-    Converged k-sigma clipping of Gaussian noise stops where the threshold is k times the std
-    of the values it keeps; that std underestimates sigma by this factor (0.9868 for k = 3).
-    """
-    c = k
-    for _ in range(100):
-        s = math.sqrt(1.0 - 2.0 * c * math.exp(-0.5 * c * c) / math.sqrt(2.0 * math.pi)
-                      / math.erf(c / math.sqrt(2.0)))
-        c_new = k * s
-        if abs(c_new - c) < 1e-14:
-            break
-        c = c_new
-    return s
-
-
-#: Bias factor of the converged 3-sigma clipped std on Gaussian noise (divided out).
-CLIP_CORRECTION = _clip_correction(CLIP_SIGMA)
 
 
 @dataclass
@@ -161,67 +131,6 @@ def _label(image: Any) -> str | None:
     return None
 
 
-def _clipped_sigma(vals: np.ndarray, min_pixels: int) -> tuple[np.ndarray, np.ndarray]:
-    """Converged 3-sigma clipped std (truncation corrected) of each row; NaN = unusable.
-
-    Each row is sorted once; a clipping window is then an index range of the sorted row, its
-    sums come from cumulative sums (relative to the row's median, so the variance does not
-    cancel) and every iteration costs one comparison pass instead of a median.
-    """
-    n, p = vals.shape
-    srt = np.sort(vals, axis=1)  # NaN sort last
-    nf = np.isfinite(srt).sum(axis=1)
-    rows = np.arange(n)
-    lo = np.zeros(n, dtype=np.int64)
-    hi = nf.astype(np.int64)
-
-    def window_median(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        m = np.maximum(hi - lo, 1)
-        a = srt[rows, np.minimum(lo + (m - 1) // 2, p - 1)]
-        b = srt[rows, np.minimum(lo + m // 2, p - 1)]
-        return 0.5 * (a + b)
-
-    shift = np.where(nf > 0, window_median(lo, hi), 0.0)
-    d = np.where(np.isfinite(srt), srt - shift[:, None], 0.0)
-    c1 = np.zeros((n, p + 1))
-    c2 = np.zeros((n, p + 1))
-    np.cumsum(d, axis=1, out=c1[:, 1:])
-    np.cumsum(d * d, axis=1, out=c2[:, 1:])
-
-    def window_std(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        m = (hi - lo).astype(np.float64)
-        s1 = c1[rows, hi] - c1[rows, lo]
-        s2 = c2[rows, hi] - c2[rows, lo]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            var = (s2 - s1 * s1 / m) / (m - 1.0)
-        return np.sqrt(np.clip(var, 0.0, None))
-
-    for _ in range(CLIP_MAXITER):
-        med = window_median(lo, hi)
-        std = window_std(lo, hi)
-        # comparisons with NaN are False, so blanked pixels never enter a window
-        new_lo = np.maximum(lo, (srt < (med - CLIP_SIGMA * std)[:, None]).sum(axis=1))
-        new_hi = np.minimum(hi, (srt <= (med + CLIP_SIGMA * std)[:, None]).sum(axis=1))
-        new_hi = np.maximum(new_hi, new_lo)
-        if np.array_equal(new_lo, lo) and np.array_equal(new_hi, hi):
-            break
-        lo, hi = new_lo, new_hi
-    sigma = window_std(lo, hi) / CLIP_CORRECTION
-    sigma[nf < max(min_pixels, 2)] = np.nan
-    return sigma, nf
-
-
-def _mad_sigma(vals: np.ndarray, min_pixels: int) -> tuple[np.ndarray, np.ndarray]:
-    nf = np.isfinite(vals).sum(axis=1)
-    sigma = np.full(vals.shape[0], np.nan)
-    ok = nf >= max(min_pixels, 2)
-    if ok.any():
-        v = vals[ok]
-        med = np.nanmedian(v, axis=1)
-        sigma[ok] = MAD_TO_SIGMA * np.nanmedian(np.abs(v - med[:, None]), axis=1)
-    return sigma, nf
-
-
 def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = None,
                         mask_radius_arcsec: float | None = None, estimator: str = "clipped",
                         min_fraction: float = MIN_FRACTION) -> LocalNoise:
@@ -286,13 +195,8 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
         if not radius > 0:
             raise XstackError(f"mask radius must be positive, got {mask_radius_arcsec}")
     if stamp_size is None:
-        if beam:
-            beam_area_pix = math.pi / (4.0 * math.log(2.0)) * beam[0] * beam[1] / (pix_x * pix_y)
-            size = math.ceil(math.sqrt(STAMP_BEAM_AREAS * beam_area_pix))
-            size = max(size, math.ceil(4.0 * radius / min(pix_x, pix_y)))
-        else:
-            size = DEFAULT_STAMP_PIXELS
-        size = min(size | 1, min(nx, ny))
+        size = kernels.noise_stamp_size(beam, pix_x, pix_y, radius, min(nx, ny),
+                                        fallback=DEFAULT_STAMP_PIXELS)
     else:
         if isinstance(stamp_size, bool) or int(stamp_size) != stamp_size or stamp_size < 5:
             raise XstackError(f"stamp size must be an integer >= 5 pixels, got {stamp_size!r}")
@@ -318,18 +222,11 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
 
     sigma = np.full(n, np.nan)
     npix = np.zeros(n, dtype=np.int64)
-    outside_idx = np.flatnonzero(~mask.ravel())
     todo = np.flatnonzero(on_image & ~blanked)
     for s in range(0, todo.size, kernels.SHIFT_CHUNK):  # chunks bound the stamps' memory
         sel = todo[s:s + kernels.SHIFT_CHUNK]
         stamps, _, _ = kernels.extract_stamps(info.data, px[sel], py[sel], size)
-        if estimator == "std":
-            sig = kernels.local_sigma(stamps, mask, min_pixels=min_pixels)
-            nf = np.isfinite(stamps.reshape(sel.size, -1)[:, outside_idx]).sum(axis=1)
-        else:
-            vals = stamps.reshape(sel.size, -1)[:, outside_idx]
-            fn = _clipped_sigma if estimator == "clipped" else _mad_sigma
-            sig, nf = fn(vals, min_pixels)
+        sig, nf = kernels.noise_sigma(stamps, mask, estimator, min_pixels)
         sigma[sel] = sig
         npix[sel] = nf
 

@@ -8,20 +8,23 @@ the pixelisation of nearest-pixel alignment, which sub-pixel alignment removes):
 
 * ``uv_cut``, ``uv_all``: ``stack_uv`` with sigma_k from the residual map (its 3-sigma
   clipped local noise), with and without the 5000 m cut;
-* ``im_nearest``, ``im_sub``: ``stack_images`` with its own sigma_k (the plain standard
-  deviation of the stamp outside the central mask), nearest-pixel and sub-pixel;
+* ``im_nearest``, ``im_sub``: ``stack_images`` with its own default sigma_k (since
+  2026-12-06 the uv stack's: 3-sigma clipped on ~300 beam areas), nearest-pixel and sub-pixel;
+* ``im_nearest_std64``, ``im_sub_std64``: the same with the paper's plain standard deviation
+  on the 64-pixel stamp (``noise_estimator="std", noise_stamp_size=64``; the default before);
 * ``im_sub_uvweights``: the image stack with the uv stack's own position weights;
 * ``uv_all_noweights``, ``im_sub_noweights``: both with no position weights.
 
-Measured 2026-12-05 on seed 2 (2-core machine, ~8 min): uv_all 0.938, im_sub 0.715,
+Measured 2026-12-05 on seed 2 (2-core machine, ~8 min), when ``im_sub`` was today's
+``im_sub_std64``: uv_all 0.938, im_sub 0.715,
 im_sub_uvweights 0.932, uv_all_noweights 0.880, im_sub_noweights 0.883 µJy (true 1.014):
 on seed 5 1.049 (0.864 on all baselines), 0.688, 0.853, 0.917, 0.903: the image deficit
 is the plain standard deviation's weights (docs/reproduction.md, type 6).
 
-A second table image-stacks the same map with 1/sigma_k^2 weights from
-``xstack.uvstack.localnoise.measure_local_noise`` for each estimator (clipped, mad, std) on
-its default stamp (~300 beam areas) and on ``stack_images``' 64 pixels: only the clipped
-estimator on the larger stamp gives the uv value (seed 2: 0.932; std on 64 px: 0.717).
+A second table image-stacks the same map (sub-pixel) with ``stack_images``' own
+``noise_estimator`` (clipped, mad, std) on its default stamp (~300 beam areas) and on the
+64-pixel stamp: only the clipped estimator on the larger stamp gives the uv value (seed 2:
+0.932; std on 64 px: 0.717).
 
 Usage::
 
@@ -40,9 +43,12 @@ from astropy.table import Table
 
 import xstack
 from xstack.imaging.clean import clean_data
+from xstack.imstack.kernels import NOISE_ESTIMATORS as ESTIMATORS
 from xstack.reproduce import run as rr
 from xstack.reproduce.paper import PROCEDURES
-from xstack.uvstack.localnoise import ESTIMATORS, measure_local_noise
+
+#: the paper's sigma_k as stack_images measured it before 2026-12-06
+STD64 = {"noise_estimator": "std", "noise_stamp_size": 64}
 
 TYPE = 6
 
@@ -77,6 +83,8 @@ def stacks(res: Path, image: Path, psf: Path, targets: Table) -> dict[str, tuple
         "uv_all": xstack.stack_uv(res, targets, weighting="sigma2", noise_image=image),
         "im_nearest": im(targets, weighting="sigma2"),
         "im_sub": im(targets, weighting="sigma2", subpixel="fourier"),
+        "im_nearest_std64": im(targets, weighting="sigma2", **STD64),
+        "im_sub_std64": im(targets, weighting="sigma2", subpixel="fourier", **STD64),
         "im_sub_uvweights": im(weighted, weighting="column", subpixel="fourier"),
         "uv_all_noweights": xstack.stack_uv(res, targets, weighting="none"),
         "im_sub_noweights": im(targets, weighting="none", subpixel="fourier"),
@@ -86,17 +94,13 @@ def stacks(res: Path, image: Path, psf: Path, targets: Table) -> dict[str, tuple
 
 def estimators(image: Path, psf: Path, targets: Table) -> dict[str, float]:
     """Sub-pixel image-stacked flux (Jy) with 1/sigma_k^2 weights of each local-noise
-    estimator, on its default stamp and on stack_images' 64 pixels."""
+    estimator, on its default stamp and on 64 pixels."""
     out = {}
     for est in ESTIMATORS:
         for stamp in (None, 64):
-            sigma = measure_local_noise(image, targets, estimator=est, stamp_size=stamp).sigma
-            with np.errstate(divide="ignore"):
-                w = np.where(np.isfinite(sigma) & (sigma > 0), 1.0 / sigma**2, 0.0)
-            weighted = targets.copy()
-            weighted["weight"] = w
-            res = xstack.stack_images([image], weighted, weighting="column", psf=[psf],
-                                      plot=False, subpixel="fourier")
+            res = xstack.stack_images([image], targets, weighting="sigma2", psf=[psf],
+                                      plot=False, subpixel="fourier", noise_estimator=est,
+                                      noise_stamp_size=stamp)
             out[f"{est}, {'~300 beams' if stamp is None else f'{stamp} px'}"] = float(res.flux_jy)
     return out
 

@@ -19,6 +19,7 @@ from xstack.errors import (
     NoDataError,
     OptionError,
     OutputExistsError,
+    WeightsWarning,
     XstackError,
     XstackWarning,
 )
@@ -164,6 +165,8 @@ def test_cli_warning_is_one_line_naming_the_flag(tmp_path, capsys):
     with pytest.warns(XstackWarning, match="errors='empirical'") as rec:
         xstack.stack_uv(store, str(cat), weighting="none", primary_beam="none")
     assert [w.message.option for w in rec if isinstance(w.message, XstackWarning)] == ["errors"]
+    # its own kind: xstack reproduce silences the repeat of its Fig. 1 subsets by it
+    assert [w.category for w in rec if isinstance(w.message, XstackWarning)] == [WeightsWarning]
     assert main(["uvstack", str(store), str(cat), str(tmp_path / "o.zarr"), "--weighting",
                  "none", "--primary-beam", "none", "-q"]) == 0
     err = capsys.readouterr().err.splitlines()

@@ -65,6 +65,7 @@ _API = {
     "NoDataError": "xstack.errors:NoDataError",
     "SchemaError": "xstack.errors:SchemaError",
     "XstackWarning": "xstack.errors:XstackWarning",
+    "WeightsWarning": "xstack.errors:WeightsWarning",
     "dish_diameter": "xstack.beams:dish_diameter",
     # simulation
     "Scene": "xstack.sim.scene:Scene",

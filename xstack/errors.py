@@ -16,6 +16,7 @@ Library messages name API parameters (``skip_outside``, ``min_separation_arcsec`
 command-line flags. :class:`XstackWarning` and :class:`XstackError` carry the parameter they
 concern in their ``option`` attribute; the command line prints them as one ``warning: ...``
 or ``error: ...`` line that names the flag instead (``--min-separation``).
+:class:`WeightsWarning` is the :class:`XstackWarning` of weights that disagree with the data.
 """
 
 from __future__ import annotations
@@ -76,3 +77,11 @@ class XstackWarning(UserWarning):
 
     def __str__(self) -> str:
         return str(self.args[0]) if self.args else ""
+
+
+class WeightsWarning(XstackWarning):
+    """The visibility weights and the data's own scatter disagree (the uv stack's check).
+
+    Its own kind so that code stacking the same data again (subsets of a catalog) can
+    silence the repeat by category, not by the message's text.
+    """

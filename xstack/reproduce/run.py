@@ -69,7 +69,7 @@ import numpy as np
 
 from xstack._atomic import discard
 from xstack._result import Result, json_ready
-from xstack.errors import OptionError, XstackError, XstackWarning
+from xstack.errors import OptionError, WeightsWarning, XstackError, XstackWarning
 from xstack.reproduce.paper import PROCEDURES, TYPES, Procedure, paper_row
 
 #: Types whose procedure the runner implements: all eleven (the ALMA mosaics 8-10 CLEANed per
@@ -85,10 +85,6 @@ MAP_NOISE_KEY = "image_stack_flux_err_jy"
 
 #: Types whose records carry ``uv_flux_subsets_jy`` (Fig. 1: noise against number of targets).
 SUBSET_TYPES = (5, 6)
-
-#: The start of the uv stack's warning that WEIGHT and the visibility scatter disagree: said
-#: once per realisation by the all-targets stack, not again by each of its nested subsets.
-SUBSET_QUIET = "uv-stack flux error from WEIGHT"
 
 #: The nested subsets of ``uv_flux_subsets_jy``: the first N targets, N = 10, 30, 100, 300, ...
 #: below the number of targets, and all of them.
@@ -244,9 +240,9 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
         uvmin = proc.uvmin_m
         # the residual map(s): image-stacked, and the local noise sigma_k of both stacks' weights
         maps = residual_images(residual, proc, tmp)
-        uv = xstack.stack_uv(residual, targets, weighting=proc.uv_weighting, uvmin=uvmin,
-                             noise_image=maps[0][0] if proc.uv_weighting == "sigma2" else None,
-                             out=tmp / "stacked.zarr")
+        uv_options = {"weighting": proc.uv_weighting, "uvmin": uvmin,
+                      "noise_image": maps[0][0] if proc.uv_weighting == "sigma2" else None}
+        uv = xstack.stack_uv(residual, targets, out=tmp / "stacked.zarr", **uv_options)
 
         def image_stack(**kw: Any) -> Any:
             # a mosaic's targets near its edge may lie outside every map (as stack_uv leaves
@@ -291,11 +287,8 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
                     # the subsets are of the same residual data as the full stack above,
                     # whose weights-against-scatter warning said it once (a batch log showed
                     # it again for every subset, 4 more near-identical lines per realisation)
-                    warnings.filterwarnings("ignore", message=SUBSET_QUIET,
-                                            category=XstackWarning)
-                    sub = xstack.stack_uv(
-                        residual, targets[:size], weighting=proc.uv_weighting, uvmin=uvmin,
-                        noise_image=maps[0][0] if proc.uv_weighting == "sigma2" else None)
+                    warnings.simplefilter("ignore", WeightsWarning)
+                    sub = xstack.stack_uv(residual, targets[:size], **uv_options)
                 subsets[str(size)] = sub.flux_jy
             rec["uv_flux_subsets_jy"] = subsets
         # every realisation's uv-profile on the same bins, so figures can average them

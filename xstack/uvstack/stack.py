@@ -48,7 +48,7 @@ from xstack.coords import (
     mean_direction,
     radec_to_lmn,
 )
-from xstack.errors import NoDataError, OptionError, XstackError, XstackWarning
+from xstack.errors import NoDataError, OptionError, WeightsWarning, XstackError, XstackWarning
 from xstack.schema import default_time_chunk
 from xstack.uvstack import kernels
 from xstack.uvstack import smearing as _smearing
@@ -1142,7 +1142,7 @@ def _assemble(plan: _StackPlan, measured: _Measured, options: UvstackOptions) ->
     err_w, err_e = measured.flux_err_jy, measured.flux_err_empirical_jy
     ratio = err_e / err_w
     if np.isfinite(ratio) and abs(ratio - 1) > EMPIRICAL_TOLERANCE:
-        warnings.warn(XstackWarning(
+        warnings.warn(WeightsWarning(
             f"uv-stack flux error from WEIGHT ({err_w:.3g} Jy) and from the "
             f"visibility scatter ({err_e:.3g} Jy) differ by "
             f"{ratio:.3g}x: the weights are mis-scaled"

@@ -2,9 +2,13 @@
 
 Prints a Markdown table (time, throughput, peak memory, accuracy) for nearest-pixel and
 sub-pixel (Fourier, spline) alignment, mean and median, measured in the same run; then a
-second table for the local-noise estimator and the stamp sigma_k is measured on.
+second table for the local-noise estimator and the stamp sigma_k is measured on; a third
+for sigma_k of a primary-beam corrected image measured on image x A ("flattened") or on the
+image itself, for a wide and a narrow beam (the time it costs to evaluate a model beam on
+every pixel beside the bias it removes).
 
     python benchmarks/bench_imstack.py [--size 4000] [--n 900] [--stamp 64] [--repeat 3]
+                                       [--only align|noise|flat]
 
 The image is synthetic: point sources of flux 1 with a 3.2" x 1.6" Gaussian beam on a
 0.5" SIN grid (the paper's type-2/3 pixelisation) at random sub-pixel positions, plus white
@@ -99,7 +103,14 @@ def main() -> None:
     ap.add_argument("--stamp", type=int, default=64)
     ap.add_argument("--cell", type=float, default=0.5)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--only", choices=("align", "noise", "flat"), default=None,
+                    help="print only one of the three tables")
     args = ap.parse_args()
+    if args.only in ("noise", "flat"):
+        print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}")
+        with tempfile.TemporaryDirectory() as d:
+            (noise_table if args.only == "noise" else flat_table)(Path(d), args)
+        return
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "big.fits"
         pos = make_image(path, args.size, args.n, args.cell)
@@ -142,7 +153,9 @@ def main() -> None:
         t, _, _, _ = timed(lambda: kernels.local_sigma(st, mask), args.repeat)
         print(f"  local_sigma: {t * 1e3:.1f} ms")
 
-        noise_table(Path(d), args)
+        if args.only is None:
+            noise_table(Path(d), args)
+            flat_table(Path(d), args)
 
 
 def noise_table(d: Path, args: argparse.Namespace, noise: float = 0.01) -> None:
@@ -176,6 +189,81 @@ def noise_table(d: Path, args: argparse.Namespace, noise: float = 0.01) -> None:
             print(f"| {est} | {label} | {t:.3f} | {cpu:.3f} | {np.median(r[~near]):.4f} "
                   f"| {np.std(r[~near]) / np.median(r[~near]):.4f} | {np.median(r[near]):.3f} "
                   f"| {100 * loss:.1f} % | {res.flux_jy:.4f} |")
+
+
+def flat_table(d: Path, args: argparse.Namespace, noise: float = 0.01,
+               freq_hz: float = 1.4e9) -> None:
+    """sigma_k of a corrected image, flattened (image x A) or not: time and accuracy.
+
+    The image is white noise of ``noise`` divided by a Gaussian primary beam A (blanked below
+    the cutoff 0.1), centered on the image, once wide (FWHM = half the image) and once narrow
+    (FWHM = 1.5 sigma_k stamps, like an ALMA 12 m pointing at 230 GHz imaged with a 1"
+    beam); targets on rings out to A = 0.3. The truth is noise / A_k. Rows: the beam as a
+    model evaluated on every pixel (``primary_beam=``), the beam as an array on the image
+    grid (no evaluation), and no beam (``primary_beam="none"``: the corrected map's own
+    spread, as before). beam_on_grid times the model's evaluation alone.
+    """
+    from xstack.beams import PrimaryBeam
+    from xstack.coords import SPEED_OF_LIGHT
+    from xstack.imstack.io import beam_on_grid, image_beam
+
+    size, cell = args.size, args.cell
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---SIN", "DEC--SIN"]
+    w.wcs.crval = [57.2957917, -30.0]
+    w.wcs.crpix = [size // 2 + 1, size // 2 + 1]
+    w.wcs.cdelt = [-cell / 3600, cell / 3600]
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    r_pix = np.hypot(xx - size // 2, yy - size // 2) * (cell / 3600 * np.pi / 180)
+    del xx, yy
+    stamp_px = kernels.noise_stamp_size(BEAM[:2], cell, cell, BEAM[0], size)
+    print(f"\n# sigma_k of a corrected image (noise {noise} / A), {size}x{size}, sigma_k "
+          f"stamps of {stamp_px} px; truth noise / A_k")
+    print("| beam FWHM | A from | flattened | beam_on_grid (s) | stack wall (s) | CPU (s) "
+          "| sigma/true, median | worst | at A < 0.5 |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    rng = np.random.default_rng(3)
+    for label, fwhm_arcsec in (("wide", size * cell / 2), ("narrow", 1.5 * stamp_px * cell)):
+        dish = 1.13 * SPEED_OF_LIGHT / (freq_hz * np.radians(fwhm_arcsec / 3600))
+        pb = PrimaryBeam("gaussian", float(dish), cutoff=0.1)
+        a_pix = pb(r_pix, freq_hz).astype(np.float32)
+        with np.errstate(divide="ignore", over="ignore"):   # A underflows far out: blanked
+            img = rng.normal(0.0, noise, (size, size)).astype(np.float32) / a_pix
+        img[a_pix < 0.1] = np.nan
+        h = w.to_header()
+        h["BMAJ"], h["BMIN"], h["BPA"], h["BUNIT"] = BEAM[0] / 3600, BEAM[1] / 3600, BEAM[2], "Jy/beam"
+        h["XSPBCOR"] = True
+        h["NAXIS"] = 3
+        h["CTYPE3"], h["CRVAL3"], h["CDELT3"], h["CRPIX3"], h["CUNIT3"] = "FREQ", freq_hz, 1e6, 1.0, "Hz"
+        path = d / f"corrected_{label}.fits"
+        fits.PrimaryHDU(img[None], header=h).writeto(path, overwrite=True)
+        del img
+        info = read_image(path)
+        # targets on rings from the center out to A = 0.3 (Gaussian: r = FWHM sqrt(ln(1/A)/4ln2))
+        r_max = fwhm_arcsec * np.sqrt(np.log(1 / 0.3) / (4 * np.log(2)))
+        rad = np.sqrt(rng.uniform(0, 1, args.n)) * r_max / 3600
+        ang = rng.uniform(0, 2 * np.pi, args.n)
+        dec = -30.0 + rad * np.cos(ang)
+        ra = 57.2957917 + rad * np.sin(ang) / np.cos(np.radians(-30.0))
+        pos = np.c_[ra, dec]
+        px, py = w.world_to_pixel_values(ra, dec)
+        theta = np.hypot(px - size // 2, py - size // 2) * (cell / 3600 * np.pi / 180)
+        a_k = pb(theta, freq_hz)
+        truth = noise / a_k
+        conv = image_beam(info, pb, image_corrected=True)
+        t_grid, _, _, _ = timed(lambda c=conv, i=info: beam_on_grid(c, i), 1)
+        for source, beam_arg in (("model", pb), ("array on the grid", a_pix.astype(np.float64)),
+                                 ("none", "none")):
+            t, _, res, cpu = timed(lambda b=beam_arg, i=info, p=pos: stack_images(
+                i, p, stamp_size=args.stamp, primary_beam=b, image_corrected=True),
+                args.repeat)
+            order = np.argsort(res.cube.position.values)
+            r = res.cube.sigma.values[order] / truth[res.cube.position.values[order]]
+            low = a_k[res.cube.position.values[order]] < 0.5
+            print(f"| {fwhm_arcsec:.0f}\" ({label}) | {source} | {res.noise_flattened} "
+                  f"| {t_grid if source == 'model' else 0:.2f} | {t:.2f} | {cpu:.2f} "
+                  f"| {np.median(r):.4f} | {r[np.argmax(np.abs(r - 1))]:.3f} "
+                  f"| {np.median(r[low]) if low.any() else float('nan'):.3f} |")
 
 
 if __name__ == "__main__":

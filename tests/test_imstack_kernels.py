@@ -188,3 +188,18 @@ def test_vectorised_spline_equals_scipy_ndimage_shift():
         ref = ndimage.shift(a[k], (dy[k], dx[k]), order=3, mode="mirror")
         # identical interpolant; the boundary handling differs only near the border
         np.testing.assert_allclose(out[k][10:-10, 10:-10], ref[10:-10, 10:-10], atol=1e-12)
+
+
+@pytest.mark.parametrize("estimator", ["clipped", "mad", "std"])
+def test_noise_sigma_when_the_mask_covers_the_stamp(estimator):
+    """A central mask as large as the stamp (a small stamp, a large beam) leaves no pixel:
+    sigma_k is NaN for every estimator (the position then gets weight 0), not an error."""
+    stamps = np.random.default_rng(0).normal(size=(3, 5, 5))
+    mask = np.ones((5, 5), dtype=bool)
+    sigma, n_finite = kernels.noise_sigma(stamps, mask, estimator)
+    assert sigma.shape == (3,) and np.all(np.isnan(sigma))
+    assert np.all(n_finite == 0)
+    # and all-NaN stamps with pixels outside the mask
+    sigma, n_finite = kernels.noise_sigma(np.full((2, 9, 9), np.nan),
+                                          kernels.central_mask(9, 1.0), estimator)
+    assert np.all(np.isnan(sigma)) and np.all(n_finite == 0)

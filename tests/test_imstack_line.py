@@ -246,3 +246,38 @@ def test_topocentric_cube_without_time_or_place_is_a_clear_error(tmp_path):
     res = stack_line_cube(tmp_path / "bare.fits", cat, line_frequency=REST, frame="cube",
                           primary_beam="none")
     assert res.frame == "topo"
+
+
+def test_channel_noise_sees_through_a_bright_neighbour(tmp_path):
+    """A 20-sigma continuum point (what CLEAN leaves of a bright source) 6 pixels from two
+    of the four targets: the plain std of their stamp planes counts it as noise, the default
+    clipped std does not. Truth: the same noise without the neighbour, whose errors
+    test_errors_against_brute_force checks against the scatter of 200 realisations."""
+    noise = 0.01
+    clean = tmp_path / "clean.fits"
+    cat = make_cube(clean, TARGETS, n=40, nchan=60, noise=noise, seed=7)
+    with fits.open(clean) as hdul:
+        data, header = hdul[0].data.astype(np.float64), hdul[0].header
+    yy, xx = np.mgrid[0:40, 0:40]
+    s = BEAM_FWHM_PIX / (2 * np.sqrt(2 * np.log(2)))
+    for px, py in ((16, 10), (29, 17)):   # 6 px east of target 0, 6 px north of target 1
+        data += 20 * noise * np.exp(-((xx - px) ** 2 + (yy - py) ** 2) / (2 * s * s))
+    bright = tmp_path / "bright.fits"
+    fits.PrimaryHDU(data.astype(np.float32), header=header).writeto(bright)
+
+    kw = dict(line_frequency="HI", stamp_size=20, **GRID)
+    ref = stack_line_cube(clean, cat, **kw)
+    clipped = stack_line_cube(bright, cat, **kw)
+    plain = stack_line_cube(bright, cat, noise_estimator="std", **kw)
+    assert clipped.options["noise_estimator"] == "clipped"
+    assert plain.options["noise_estimator"] == "std"
+    inside = ref.n_targets_per_bin == 4
+    r_clip = np.median(clipped.flux_err_jy[inside] / ref.flux_err_jy[inside])
+    r_plain = np.median(plain.flux_err_jy[inside] / ref.flux_err_jy[inside])
+    assert abs(r_clip - 1) < 0.05, r_clip     # 1.026: the neighbour's 1-3 sigma wings stay
+    assert r_plain > 1.25, r_plain            # 1.36
+    # the neighbour adds nothing at the targets: the clipped stack is the clean one's
+    np.testing.assert_allclose(clipped.flux_jy[inside], ref.flux_jy[inside],
+                               atol=0.5 * np.median(ref.flux_err_jy[inside]))
+    with pytest.raises(OptionError, match="noise estimator"):
+        stack_line_cube(clean, cat, noise_estimator="rms", **kw)

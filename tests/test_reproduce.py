@@ -223,6 +223,7 @@ def test_cli_json_and_table(tmp_path, capsys):
     # the paper's expected noise (Table 2's 0.47 µJy) beside xstack's from the residual map
     (map_line,) = [x for x in text.splitlines() if "noise, map (eq. 9)" in x]
     assert map_line.rstrip().endswith("0.470 µJy"), map_line
+    assert "noise, map (eq. 9) " in map_line, map_line   # the label stands apart from its value
     assert len(_lines(tmp_path, 2)) == 1
     # --overwrite forgets the earlier realisation and runs it again; without a bar (not a
     # terminal: a batch job's log) each realisation is a line on stderr as it finishes

@@ -128,9 +128,9 @@ def run(args: argparse.Namespace) -> int:
         raise XstackError(f"{out}: the output must be a .fits file name (got the arguments in "
                           "the wrong order?)")
     if args.line_frequency is not None:
-        if args.noise_estimator != "clipped" or args.noise_stamp_size is not None:
-            raise XstackError("--noise-estimator and --noise-stamp-size are for continuum "
-                              "stacks (a line stack's channel noise is the std of its stamp)")
+        if args.noise_stamp_size is not None:
+            raise XstackError("--noise-stamp-size is for continuum stacks (a line stack "
+                              "measures each channel's noise on its stamp)")
         return _run_line(args, images, catalog, out)
     for flag, given in (("--continuum-subtract", args.continuum_subtract),
                         ("--line-free", args.line_free), ("--frame", args.frame)):
@@ -205,6 +205,7 @@ def _run_line(args: argparse.Namespace, images: list[str], catalog: str, out: st
                           velocity_range=args.velocity_range, method=args.method,
                           weighting=args.weighting, stamp_size=args.stamp_size,
                           beam_mask_arcsec=args.beam_mask_arcsec,
+                          noise_estimator=args.noise_estimator,
                           primary_beam=(args.primary_beam or ["auto"])[0],
                           frame=args.frame or "lsrk", out=out, overwrite=args.overwrite)
     res, baseline = subtract_continuum_of(res, args)

@@ -137,16 +137,16 @@ def print_tables(payload: dict[str, Any]) -> None:
                    f"({_snr(t['image_flux_mean_jy'], t['image_flux_scatter_jy'])})")
         result(f"type {t['type']}: {t['realizations']} realisation(s), scale {t['scale']:g}, "
                f"{seconds(t['seconds'])} of computing ({t['seconds_per_realization']:.1f} s each)",
-               f"  {'':18s}{'xstack':<30s}paper (Table 2)",
-               f"  {'expected':18s}{fig(t['true_flux_jy'], t['expected_noise_jy']):<30s}"
+               f"  {'':20s}{'xstack':<30s}paper (Table 2)",
+               f"  {'expected':20s}{fig(t['true_flux_jy'], t['expected_noise_jy']):<30s}"
                f"{fig(p['expected_flux_jy'], p['expected_noise_jy'])}",
                # the paper's expected noise is this one (eq. 9, sigma_k from the residual map)
-               f"  {'noise, map (eq. 9)':18s}"
+               f"  {'noise, map (eq. 9)':20s}"
                f"{fig(t.get('expected_map_noise_jy'), like=like):<30s}"
                f"{fig(p['expected_noise_jy'], like=like)}",
-               f"  {'uv-stacking':18s}{ours_uv:<30s}"
+               f"  {'uv-stacking':20s}{ours_uv:<30s}"
                f"{fig(p['uv_flux_jy'], p['uv_scatter_jy'])} ({p['uv_snr']:.1f})",
-               f"  {'image-stacking':18s}{ours_im:<30s}"
+               f"  {'image-stacking':20s}{ours_im:<30s}"
                f"{fig(p['image_flux_jy'], p['image_scatter_jy'])} ({p['image_snr']:.1f})")
         if t.get("sizes"):
             s, ps = t["sizes"], p["sizes"]
@@ -154,5 +154,5 @@ def print_tables(payload: dict[str, Any]) -> None:
                 ours = _arcsec(s[dom + "_fwhm_mean_arcsec"], s[dom + "_fwhm_scatter_arcsec"])
                 if s.get(dom + "_fits_failed"):
                     ours += f" ({s[dom + '_fits_failed']} failed)"
-                result(f"  {dom + ' size (FWHM)':18s}{ours:<30s}"
+                result(f"  {dom + ' size (FWHM)':20s}{ours:<30s}"
                        f"{ps[dom + '_fwhm_arcsec']:.2f} ± {ps[dom + '_fwhm_scatter_arcsec']:.2f} arcsec")

@@ -306,6 +306,12 @@ class BeamConvention:
         ``inside(ra_deg, dec_deg) -> bool``: the positions inside the image's field by the one
         rule of every stage (:func:`xstack.beams.inside_field`, at the band edge
         ``ImageInfo.band_top_hz``), or None if no beam is known.
+    grid
+        A on the image's own pixel grid when the beam came as an array on that grid (a beam
+        file beside the image, an in-memory beam), else None (:func:`beam_on_grid` then
+        evaluates ``values`` on the pixel centres).
+    unit
+        The beam is A = 1 everywhere (``primary_beam="none"``).
     """
 
     corrected: bool
@@ -316,11 +322,81 @@ class BeamConvention:
     missing: str = ""
     from_image: bool = False
     inside: Any = None
+    grid: np.ndarray | None = None
+    unit: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly summary (what the results record)."""
         return {"image_corrected": bool(self.corrected), "corrected_from": self.corrected_from,
                 "beam": self.beam_from, "cutoff": float(self.cutoff)}
+
+
+#: Image rows per block when a beam model is evaluated on every pixel of an image (bounds the
+#: memory of the pixel-to-sky transform to ~20 float64 arrays of this many rows).
+GRID_ROWS = 256
+
+
+def beam_on_grid(conv: BeamConvention, info: ImageInfo) -> np.ndarray | None:
+    """The primary beam A on every pixel of ``info`` (float64, same shape), NaN where A is
+    below the convention's cutoff or 0 (outside the field); None if no beam is known or it is
+    A = 1 everywhere (nothing to flatten).
+
+    Used to measure an image's noise where it is flat: the noise of a primary-beam corrected
+    image grows as 1/A away from the pointing, and that of ``image * A`` does not.
+    """
+    if conv.values is None or conv.unit:
+        return None
+    if conv.grid is not None:
+        beam = np.array(conv.grid, dtype=np.float64)
+    else:
+        ny, nx = info.shape
+        beam = np.empty((ny, nx), dtype=np.float64)
+        xs = np.arange(nx, dtype=np.float64)
+        for y0 in range(0, ny, GRID_ROWS):
+            y1 = min(ny, y0 + GRID_ROWS)
+            px, py = np.meshgrid(xs, np.arange(y0, y1, dtype=np.float64))
+            ra, dec = info.wcs.pixel_to_world_values(px, py)
+            beam[y0:y1] = np.asarray(conv.values(np.asarray(ra), np.asarray(dec)), np.float64)
+    with np.errstate(invalid="ignore"):
+        beam[~(np.isfinite(beam) & (beam > 0) & (beam >= conv.cutoff))] = np.nan
+    return beam
+
+
+def flat_noise_image(info: ImageInfo, conv: BeamConvention) -> tuple[np.ndarray, bool]:
+    """The image on which to measure the local noise sigma_k, where that noise is flat.
+
+    An image that is not primary-beam corrected is its own (its noise is the same over the
+    field); a corrected image whose beam is known becomes ``image * A`` (NaN below the
+    cutoff), as its noise grows as 1/A away from the pointing; a corrected image without a
+    known beam stays as it is. A sigma_k measured on the returned image is that of the
+    corrected flux once divided by A at the position -- except for the last case, where it
+    already is (:func:`noise_to_corrected`).
+
+    Returns
+    -------
+    image, flattened
+        The 2-D image (the input's own array when not flattened; never modified), and
+        whether it is the corrected image times A.
+    """
+    beam = beam_on_grid(conv, info) if conv.corrected else None
+    if beam is None:
+        return info.data, False
+    return np.asarray(info.data, dtype=np.float64) * beam, True
+
+
+def noise_to_corrected(sigma: np.ndarray, conv: BeamConvention, flattened: bool,
+                       atten: np.ndarray) -> np.ndarray:
+    """sigma_k measured on :func:`flat_noise_image` as the noise of the corrected flux.
+
+    Divided by the attenuation ``atten`` (A at each position) for an uncorrected image or a
+    flattened one, NaN where A is not positive (outside the beam); unchanged otherwise.
+    """
+    sigma = np.asarray(sigma, dtype=np.float64)
+    if (conv.corrected and not flattened) or conv.values is None or conv.unit:
+        return sigma
+    atten = np.asarray(atten, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(atten > 0, sigma / atten, np.nan)
 
 
 def beam_image_values(beam: np.ndarray, wcs: WCS, ra: np.ndarray, dec: np.ndarray) -> np.ndarray:
@@ -408,6 +484,9 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
         beam = np.asarray(beam, dtype=np.float64)
         conv.values = lambda ra, dec: beam_image_values(beam, wcs, ra, dec)
         conv.beam_from, conv.from_image = label, True
+        if beam.shape == info.shape and (wcs is info.wcs or wcs.wcs.compare(info.wcs.wcs,
+                                                                            tolerance=1e-9)):
+            conv.grid = beam
         conv.inside = _sampled_inside(beam, wcs, info, beam_freq or info.frequency_hz, conv)
 
     def from_model(model: PrimaryBeam, label: str) -> None:
@@ -429,7 +508,7 @@ def image_beam(info: ImageInfo, pb: Any = None, image_corrected: bool | None = N
     if pb_none:
         conv.values = lambda ra, dec: np.ones(np.shape(ra))
         conv.inside = lambda ra, dec: np.ones(np.shape(ra), dtype=bool)
-        conv.beam_from = "none (A = 1)"
+        conv.beam_from, conv.unit = "none (A = 1)", True
         return conv
     if pb is not None:
         if isinstance(pb, (str, os.PathLike)) and not (isinstance(pb, str) and pb in (

@@ -371,6 +371,8 @@ def clipped_sigma(vals: np.ndarray, min_pixels: int = MIN_NOISE_PIXELS
     """
     vals = np.asarray(vals, dtype=np.float64)
     n, p = vals.shape
+    if p == 0:  # the mask covers the whole stamp: nothing to measure on
+        return np.full(n, np.nan), np.zeros(n, dtype=np.int64)
     srt = np.sort(vals, axis=1)  # NaN sort last
     nf = np.isfinite(srt).sum(axis=1)
     rows = np.arange(n)
@@ -456,6 +458,39 @@ def noise_sigma(stamps: np.ndarray, mask: np.ndarray, estimator: str = "clipped"
         return (local_sigma(stamps, mask, min_pixels=min_pixels),
                 np.isfinite(vals).sum(axis=1))
     return (clipped_sigma if estimator == "clipped" else mad_sigma)(vals, min_pixels)
+
+
+def stamp_noise(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int, mask: np.ndarray,
+                estimator: str = "clipped", min_pixels: int = MIN_NOISE_PIXELS
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`noise_sigma` of the nearest-pixel stamps of ``image`` centered on ``(x, y)``.
+
+    The stamps are cut :data:`SHIFT_CHUNK` at a time, so that the memory stays bounded for
+    10^5 positions and stamps of ~300 beams.
+
+    Parameters
+    ----------
+    image
+        2-D image ``image[y, x]`` (NaN = blanked).
+    x, y
+        0-based pixel coordinates, shape (n,).
+    size, mask, estimator, min_pixels
+        As :func:`extract_stamps` and :func:`noise_sigma`.
+
+    Returns
+    -------
+    sigma, n_finite
+        float64 (n,) sigma_k in the image's unit; int64 (n,) finite pixels outside the mask.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    sigma = np.full(x.size, np.nan)
+    n_finite = np.zeros(x.size, dtype=np.int64)
+    for s in range(0, x.size, SHIFT_CHUNK):
+        stamps, _, _ = extract_stamps(image, x[s:s + SHIFT_CHUNK], y[s:s + SHIFT_CHUNK], size)
+        sigma[s:s + SHIFT_CHUNK], n_finite[s:s + SHIFT_CHUNK] = noise_sigma(
+            stamps, mask, estimator, min_pixels)
+    return sigma, n_finite
 
 
 def noise_stamp_size(beam_arcsec: tuple[float, float] | None, pix_x: float, pix_y: float,

@@ -302,6 +302,7 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
                     method: str = "mean", weighting: str = "sigma2", stamp_size: int = 32,
                     beam_mask_arcsec: float | None = None, primary_beam: str = "auto",
                     pb_cutoff: float | None = None, frame: str = "lsrk",
+                    noise_estimator: str = "clipped",
                     out: str | os.PathLike | None = None,
                     overwrite: bool = False) -> ImLineStackResult:
     """Stack the spectral lines of catalog targets in an image cube, aligned in velocity.
@@ -326,6 +327,12 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
         Stamp size, pixels (>= 8).
     beam_mask_arcsec
         Radius of the central mask for the noise (default the header's BMAJ).
+    noise_estimator
+        How each stamp plane's noise sigma_ki is measured outside the mask: ``"clipped"``
+        (default, the 3-sigma clipped standard deviation, as the continuum stacks),
+        ``"mad"`` or ``"std"`` (the plain standard deviation, which counts a bright
+        neighbour or CLEAN's residual in the stamp as noise; the default before
+        2026-12-06). Used for the sigma2 weights and the errors.
     primary_beam
         ``auto`` (the telescope's standard beam from TELESCOP), a model name, or ``none``.
         A cube whose header says it is not corrected (``XSPBCOR = F``) is divided by it.
@@ -359,6 +366,9 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
     if int(stamp_size) < 8:
         raise OptionError(f"stamp size must be >= 8 pixels, got {stamp_size}",
                           option="stamp_size")
+    if noise_estimator not in kernels.NOISE_ESTIMATORS:
+        raise OptionError(f"unknown noise estimator {noise_estimator!r} (use "
+                          f"{', '.join(kernels.NOISE_ESTIMATORS)})", option="noise_estimator")
     if frame not in _vocabulary.CUBE_LINE_FRAMES:
         raise OptionError(f"unknown frame {frame!r} (use "
                           f"{', '.join(_vocabulary.CUBE_LINE_FRAMES)})", option="frame")
@@ -375,7 +385,8 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
                       weighting=weighting, size=size, beam_mask_arcsec=beam_mask_arcsec,
                       primary_beam=primary_beam, pb_cutoff=pb_cutoff,
                       velocity_resolution=velocity_resolution, velocity_range=velocity_range,
-                      frame=frame, out=out, overwrite=overwrite)
+                      frame=frame, noise_estimator=noise_estimator, out=out,
+                      overwrite=overwrite)
     finally:
         c.close()
 
@@ -383,8 +394,8 @@ def stack_line_cube(cube: str | os.PathLike, positions: Any, *, line_frequency: 
 def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndarray,
            method: str, weighting: str, size: int, beam_mask_arcsec: float | None,
            primary_beam: str, pb_cutoff: float | None, velocity_resolution: float,
-           velocity_range: tuple[float, float], frame: str, out: Any, overwrite: bool
-           ) -> ImLineStackResult:
+           velocity_range: tuple[float, float], frame: str, noise_estimator: str, out: Any,
+           overwrite: bool) -> ImLineStackResult:
     """The stack of :func:`stack_line_cube` on an opened cube."""
     from xstack._inputs import Positions
     from xstack.beams import DEFAULT_PB_CUTOFF
@@ -450,7 +461,7 @@ def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndar
             if correct:
                 with np.errstate(divide="ignore", invalid="ignore"):
                     stamp /= np.where(off, 1.0, a)[:, None, None]
-        sigma = kernels.local_sigma(stamp, mask)
+        sigma = kernels.noise_sigma(stamp, mask, noise_estimator)[0]
         if weighting == "sigma2":
             with np.errstate(divide="ignore"):
                 w = np.where(np.isfinite(sigma) & (sigma > 0), 1.0 / sigma**2, 0.0)
@@ -530,7 +541,8 @@ def _stack(c: _Cube, cube: Any, positions: Any, *, rest_hz: float, grid: np.ndar
         "weighting": weighting, "stamp_size": size, "primary_beam": primary_beam,
         "pb_corrected_here": bool(correct), "pb_cutoff": cutoff,
         "beam_mask_arcsec": None if bmaj is None else float(bmaj),
-        "frame": frame_out, "cube_frame": c.frame, "frame_ratio": float(ratio)})
+        "noise_estimator": noise_estimator, "frame": frame_out, "cube_frame": c.frame,
+        "frame_ratio": float(ratio)})
     res = ImLineStackResult(
         velocity_edges_kms=grid, velocity_kms=0.5 * (grid[1:] + grid[:-1]), flux_jy=flux,
         flux_err_jy=err, flux_cov_jy2=cov, n_targets_per_bin=n_per_bin,

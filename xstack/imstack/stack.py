@@ -35,7 +35,9 @@ from xstack.imstack import kernels
 from xstack.imstack.io import (
     BeamConvention,
     ImageInfo,
+    flat_noise_image,
     image_beam,
+    noise_to_corrected,
     output_paths,
     psf_path_for,
     read_image,
@@ -89,6 +91,10 @@ class ImstackResult(Result):
     noise_estimator, noise_stamp_size
         How sigma_k was measured: the estimator and the side (pixels) of the stamps it was
         measured on (``noise_stamp_size`` as used, the default resolved).
+    noise_flattened
+        True when sigma_k was measured on a primary-beam corrected image times its beam A
+        (where the noise is flat) and divided by A at the position, as it is whenever the
+        beam of a corrected image is known; an uncorrected image is measured as it is.
     psf_stamp
         The PSF of the stack (y, x) if a PSF image was found or given, else None: the
         weighted mean of each stamp's PSF, including for nearest-pixel alignment the
@@ -123,6 +129,7 @@ class ImstackResult(Result):
     mask_radius_arcsec: float = float("nan")
     noise_estimator: str = "clipped"
     noise_stamp_size: int = 0
+    noise_flattened: bool = False
     pixel_arcsec: tuple[float, float] = (float("nan"), float("nan"))
     pixelisation_factor: float | None = None
     filter_lowfreq: Any = None
@@ -153,6 +160,7 @@ class ImstackResult(Result):
             "mask_radius_arcsec": num(self.mask_radius_arcsec),
             "noise_estimator": self.noise_estimator,
             "noise_stamp_size": int(self.noise_stamp_size),
+            "noise_flattened": bool(self.noise_flattened),
             "pixelisation_factor": num(self.pixelisation_factor),
             "psf": self.psf_stamp is not None,
             "filter_lowfreq": self.filter_lowfreq,
@@ -573,6 +581,7 @@ class _Measured:
     peak: float
     pixfac: float | None
     filter_response: float | None = None   # filtered / unfiltered PSF peak (filter_lowfreq)
+    noise_flattened: bool = False          # sigma_k measured on a corrected image times A
 
 
 def _load(images: ImageSource | Sequence[ImageSource], positions: Any,
@@ -720,29 +729,36 @@ def _cut_stamps(plan: _Plan, options: ImstackOptions
 
 
 def _local_noise(plan: _Plan, options: ImstackOptions, stamps: np.ndarray, rows: np.ndarray,
-                 img_idx: np.ndarray) -> np.ndarray:
-    """sigma_k of each stamp (Jy/beam of the corrected flux), in the order the stamps were cut.
+                 img_idx: np.ndarray) -> tuple[np.ndarray, bool]:
+    """sigma_k of each stamp (Jy/beam of the corrected flux), in the order the stamps were cut,
+    and whether it was measured on a primary-beam corrected image times A.
 
-    On the stamps themselves when the noise stamp has their size; otherwise on nearest-pixel
-    stamps of ``plan.noise_size`` cut in batches (memory bounded for 10^5 positions), divided
-    by A like the stamps for an uncorrected image.
+    sigma_k is measured where the noise is flat and then scaled to the position: on nearest-
+    pixel stamps of ``plan.noise_size`` (cut in batches, memory bounded for 10^5 positions)
+    of the uncorrected image -- the image itself, or a corrected image times its beam A --
+    and divided by A at the position. (The noise of a corrected image grows as 1/A away
+    from the pointing, so that its spread over a stamp of ~300 beams would count the beam's
+    slope as noise: the far side of a stamp dominates the estimate.) On the stamps themselves
+    when they have the noise stamp's size and no beam is known for a corrected image.
     """
-    if plan.noise_size == options.stamp_size:
-        return kernels.noise_sigma(stamps, plan.mask, options.noise_estimator)[0]
-    sigma = np.full(rows.size, np.nan)
     infos = plan.inputs.infos
-    for i in np.unique(img_idx):
+    images = np.unique(img_idx)
+    flat = {int(i): flat_noise_image(infos[i], plan.convs[i]) for i in images}
+    flattened = any(f for _, f in flat.values())
+    if plan.noise_size == options.stamp_size and not flattened:
+        return kernels.noise_sigma(stamps, plan.mask, options.noise_estimator)[0], False
+    sigma = np.full(rows.size, np.nan)
+    for i in images:
+        conv, (image, was_flattened) = plan.convs[i], flat[int(i)]
         sel = np.flatnonzero(img_idx == i)
-        for s in range(0, sel.size, kernels.SHIFT_CHUNK):
-            part = sel[s:s + kernels.SHIFT_CHUNK]
-            r = rows[part]
-            big, _, _ = kernels.extract_stamps(infos[i].data, plan.pix[r, i, 0], plan.pix[r, i, 1],
-                                               plan.noise_size)
-            sig = kernels.noise_sigma(big, plan.noise_mask, options.noise_estimator)[0]
-            if not plan.convs[i].corrected:
-                sig = sig / plan.atten[r, i]
-            sigma[part] = sig
-    return sigma
+        r = rows[sel]
+        sig, _ = kernels.stamp_noise(image, plan.pix[r, i, 0], plan.pix[r, i, 1],
+                                     plan.noise_size, plan.noise_mask, options.noise_estimator)
+        a_k = plan.atten[r, i]
+        if was_flattened and not np.all(np.isfinite(a_k)):  # A not needed for the weights
+            a_k = np.asarray(conv.values(plan.inputs.ra[r], plan.inputs.dec[r]), np.float64)
+        sigma[sel] = noise_to_corrected(sig, conv, was_flattened, a_k)
+    return sigma, flattened
 
 
 def _weights(sigma: np.ndarray, pb_k: np.ndarray, rows: np.ndarray, cat_w: np.ndarray | None,
@@ -766,7 +782,7 @@ def _compute(plan: _Plan, options: ImstackOptions) -> _Measured:
     """Cut the stamps, weigh them, stack them; the stack's noise, PSF, filter and numbers."""
     stamps, rows, img_idx, frac_x, frac_y = _cut_stamps(plan, options)
     pb_k = plan.atten[rows, img_idx]
-    sigma = _local_noise(plan, options, stamps, rows, img_idx)
+    sigma, noise_flattened = _local_noise(plan, options, stamps, rows, img_idx)
     w = _weights(sigma, pb_k, rows, plan.inputs.cat_w, options.weighting)
 
     if options.method == "mean":
@@ -825,7 +841,7 @@ def _compute(plan: _Plan, options: ImstackOptions) -> _Measured:
     return _Measured(stamps=stamps, rows=rows, img_idx=img_idx, frac_x=frac_x, frac_y=frac_y,
                      pb_k=pb_k, sigma=sigma, w=w, stacked=stacked, wsum=wsum, psf_stack=psf_stack,
                      flux=flux, flux_err=flux_err, stamp_rms=stamp_rms, peak=peak, pixfac=pixfac,
-                     filter_response=response)
+                     filter_response=response, noise_flattened=noise_flattened)
 
 
 def _assemble(plan: _Plan, m: _Measured, options: ImstackOptions) -> ImstackResult:
@@ -873,7 +889,8 @@ def _assemble(plan: _Plan, m: _Measured, options: ImstackOptions) -> ImstackResu
         method=options.method, weighting=options.weighting, subpixel=options.subpixel,
         beam_arcsec=plan.beam, mask_radius_arcsec=plan.radius,
         noise_estimator=options.noise_estimator, noise_stamp_size=plan.noise_size,
-        pixel_arcsec=(plan.pix_x, plan.pix_y), pixelisation_factor=m.pixfac,
+        noise_flattened=m.noise_flattened, pixel_arcsec=(plan.pix_x, plan.pix_y),
+        pixelisation_factor=m.pixfac,
         filter_lowfreq=options.filter_lowfreq, filter_response=m.filter_response,
         skipped_rows=[int(k) + 1 for k in plan.unseen],
         primary_beam=[dict(c.to_dict(), image=info.name) for c, info in zip(plan.convs, infos)],
@@ -970,6 +987,7 @@ def _header_cards(result: ImstackResult) -> list[tuple[str, Any, str]]:
         ("STMASKR", f(result.mask_radius_arcsec), "[arcsec] radius of the central mask"),
         ("STNOISE", result.noise_estimator, "sigma_k estimator: clipped, mad, std"),
         ("STNOISEN", int(result.noise_stamp_size), "[pixel] side of the sigma_k stamps"),
+        ("STNOISEF", bool(result.noise_flattened), "sigma_k measured on image x PB, / PB"),
         ("STPIXFAC", f(result.pixelisation_factor), "expected nearest-pixel peak factor (Gauss)"),
         ("STFILTER", str(result.filter_lowfreq), "low-spatial-frequency FFT filter"),
         ("STPBCOR", True, "stacked flux is primary-beam corrected"),

@@ -96,6 +96,12 @@ class Procedure:
         estimators"). Records made before it existed (no such key in their procedure) used
         the plain standard deviation on the 64-pixel stamp, which made type 6's image stack
         22 % low (docs/reproduction.md).
+    image_noise_flat
+        sigma_k is measured on the primary-beam corrected residual map times A, where the
+        noise is flat, and divided by A at the position (both stacks; ``noise_flattened`` of
+        :class:`xstack.imstack.ImstackResult`). Always True: it says how a record was made, as
+        records made before it (no such key) measured it on the corrected map itself, where
+        an ALMA pointing's noise rises 1/A across the ~300-beam stamp.
     thermal_noise_jy
         The thermal noise limit at the center of the full-size data set (Jy/beam): 2.1 µJy
         for the VLA types (§2.2; type 11 "similar", §2.4), 0.5 mJy for one ALMA pointing
@@ -120,6 +126,7 @@ class Procedure:
     thermal_noise_jy: float = 2.1e-6
     pointing_size: int | None = None
     image_noise_estimator: str = "clipped"
+    image_noise_flat: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

@@ -79,9 +79,10 @@ class LocalNoise:
     pbcor
         ``XSPBCOR`` of an xstack image (True: primary-beam corrected), None if unknown.
     beam
-        For an image that says it is not corrected: where the primary beam A came from
-        (sigma_k were divided by A_k, so they are the noise of the corrected flux); None
-        when sigma_k are the image's own (a corrected image, or no beam found).
+        Where the primary beam A came from when sigma_k were measured where the noise is
+        flat and divided by A_k (so that they are the noise of the corrected flux): for an
+        image that says it is not corrected, on the image; for a corrected one whose beam
+        is known, on the image times A. None when sigma_k are the image's own (no beam).
     """
 
     sigma: np.ndarray
@@ -220,32 +221,31 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
     iy = kernels.nearest_pixel(np.where(on_image, py, 0.0))
     blanked = on_image & ~np.isfinite(info.data[iy, ix])
 
+    # sigma_k is measured where the noise is flat, as image-stacking measures it
+    # (xstack.imstack.io.flat_noise_image): on the image itself when it says it is NOT
+    # primary-beam corrected (e.g. the residual of xstack image), else -- when its beam is
+    # known -- on the corrected image times A, whose noise grows as 1/A away from the
+    # pointing; then divided by A_k, so that it is the noise of the corrected flux
+    from xstack.imstack.io import flat_noise_image, image_beam, noise_to_corrected
+
+    pbcor = pb_corrected_from_header(info.header)
+    conv = image_beam(info) if pbcor is False else image_beam(info, image_corrected=True)
+    data, flattened = flat_noise_image(info, conv)
+    scaled = conv.values is not None and (pbcor is False or flattened)
+
     sigma = np.full(n, np.nan)
     npix = np.zeros(n, dtype=np.int64)
     todo = np.flatnonzero(on_image & ~blanked)
-    for s in range(0, todo.size, kernels.SHIFT_CHUNK):  # chunks bound the stamps' memory
-        sel = todo[s:s + kernels.SHIFT_CHUNK]
-        stamps, _, _ = kernels.extract_stamps(info.data, px[sel], py[sel], size)
-        sig, nf = kernels.noise_sigma(stamps, mask, estimator, min_pixels)
-        sigma[sel] = sig
-        npix[sel] = nf
+    sigma[todo], npix[todo] = kernels.stamp_noise(data, px[todo], py[todo], size, mask,
+                                                  estimator, min_pixels)
 
-    # an image that says it is NOT primary-beam corrected (e.g. the residual of xstack image)
-    # holds the noise of the uncorrected flux: sigma_k / A_k is that of the corrected flux,
-    # with A from the beam that travels with the image (the convention of xstack.imstack.io)
-    pbcor = pb_corrected_from_header(info.header)
     beam_from = None
     weak = np.zeros(n, dtype=bool)
-    if pbcor is False:
-        from xstack.imstack.io import image_beam
-
-        conv = image_beam(info)
-        if conv.values is not None:
-            att = np.asarray(conv.values(ra, dec), dtype=np.float64)
-            weak = ~(att >= max(conv.cutoff, 1e-12))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                sigma = np.where(weak, np.nan, sigma / att)
-            beam_from = conv.beam_from
+    if scaled:
+        att = np.asarray(conv.values(ra, dec), dtype=np.float64)
+        weak = ~(att >= max(conv.cutoff, 1e-12))
+        sigma = np.where(weak, np.nan, noise_to_corrected(sigma, conv, flattened, att))
+        beam_from = conv.beam_from
 
     reasons: dict[int, str] = {}
     for k in np.flatnonzero(weak & on_image):

@@ -8,13 +8,16 @@ so the noise of the corrected flux at target k is exactly sigma_u / A_k.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from _imstack_helpers import DEC0, RA0, sin_wcs, write_image
 from astropy.io import fits
 from scipy.special import j1
 
-from xstack.imstack import stack_images
+from xstack.imstack import kernels, stack_images
+from xstack.imstack.io import beam_on_grid, flat_noise_image, image_beam, noise_to_corrected, read_image
 from xstack.uvstack.localnoise import measure_local_noise
 
 FREQ_HZ = 230e9
@@ -79,7 +82,7 @@ def _sigma_of(result) -> np.ndarray:
 @pytest.mark.parametrize("which", ["model", "onfile"])
 def test_sigma_k_is_noise_over_attenuation(pointing, which):
     """Flattened: sigma_k within 4 % of sigma_u / A_k at every target, on the beam model of
-    TELESCOP (evaluated on every pixel) and on the beam file on the image's own grid."""
+    TELESCOP (evaluated on the noise stamps' pixels) and on the beam file on the image's own grid."""
     positions = np.column_stack([pointing["ra"], pointing["dec"]])
     res = stack_images(pointing[which], positions)
     assert res.noise_flattened
@@ -102,3 +105,66 @@ def test_unflattened_sigma_k_is_biased_high_off_center(pointing):
     assert not res.noise_flattened
     ratio = _sigma_of(res) / pointing["truth"]
     assert np.all(ratio > 1.15), ratio
+
+
+def test_stamp_footprint_is_the_pixels_the_stamps_read():
+    """The footprint is exactly the set of pixels extract_stamps reads, found by cutting the
+    stamps out of an image of pixel indices: at the edges, off the image, overlapping, and
+    for even and odd sizes."""
+
+    ny, nx = 37, 53
+    index = np.arange(ny * nx, dtype=np.float64).reshape(ny, nx)
+    x = np.array([0.0, 52.4, 10.5, 11.2, -30.0, 26.0, np.nan, 60.0])
+    y = np.array([0.0, 36.0, 18.49, 18.6, 5.0, -3.0, 4.0, 40.0])
+    for size in (1, 4, 7, 20):
+        stamps, _, _ = kernels.extract_stamps(index, x[np.isfinite(x)], y[np.isfinite(x)], size)
+        read = np.zeros(ny * nx, dtype=bool)
+        read[stamps[np.isfinite(stamps)].astype(np.int64)] = True
+        foot = kernels.stamp_footprint((ny, nx), x, y, size)
+        assert foot.shape == (ny, nx) and foot.dtype == bool
+        np.testing.assert_array_equal(foot.ravel(), read)
+    assert not kernels.stamp_footprint((ny, nx), [], [], 9).any()
+
+
+def test_model_beam_is_evaluated_only_on_the_footprint(pointing):
+    """A beam model is evaluated only on the noise stamps' pixels, gives the same A there as
+    on every pixel, and sigma_k is unchanged: the same numbers as the whole-grid evaluation
+    followed by the same clipped stamps (a second, direct path)."""
+
+    info = read_image(pointing["model"])
+    conv = image_beam(info, image_corrected=True)
+    px, py = info.wcs.world_to_pixel_values(pointing["ra"], pointing["dec"])
+    size = kernels.noise_stamp_size(BEAM[:2], CELL, CELL, BEAM[0], N)
+    foot = kernels.stamp_footprint(info.shape, px[:4], py[:4], size)   # the central targets
+    assert 0 < foot.sum() < 0.6 * foot.size
+
+    evaluated = []
+
+    def counting(ra, dec):
+        evaluated.append(np.size(ra))
+        return conv.values(ra, dec)
+
+    counted = dataclasses.replace(conv, values=counting)
+    part = beam_on_grid(counted, info, foot)
+    assert sum(evaluated) == foot.sum()
+    whole = beam_on_grid(conv, info)
+    np.testing.assert_array_equal(part[foot], whole[foot])
+    assert np.all(np.isnan(part[~foot]))
+    with pytest.raises(ValueError, match="footprint has shape"):
+        beam_on_grid(conv, info, foot[:-1])
+
+    positions = np.column_stack([pointing["ra"], pointing["dec"]])
+    res = stack_images(info, positions)
+    local = measure_local_noise(info, positions)
+    assert local.stamp_size == size
+    flat, flattened = flat_noise_image(info, conv)          # every pixel
+    assert flattened
+    pix = np.hypot(info.pixel_matrix_deg[0], info.pixel_matrix_deg[1]) * 3600.0  # arcsec, x and y
+    mask = kernels.central_mask(size, local.mask_radius_arcsec / pix[0],
+                                local.mask_radius_arcsec / pix[1])
+    sig, _ = kernels.stamp_noise(flat, px, py, size, mask, "clipped")
+    a_k = np.asarray(conv.values(pointing["ra"], pointing["dec"]), np.float64)
+    direct = noise_to_corrected(sig, conv, True, a_k)
+    assert np.all(np.isfinite(direct))
+    np.testing.assert_allclose(local.sigma, direct, rtol=1e-12)
+    np.testing.assert_allclose(_sigma_of(res), direct, rtol=1e-12)

@@ -336,13 +336,24 @@ class BeamConvention:
 GRID_ROWS = 256
 
 
-def beam_on_grid(conv: BeamConvention, info: ImageInfo) -> np.ndarray | None:
-    """The primary beam A on every pixel of ``info`` (float64, same shape), NaN where A is
+def beam_on_grid(conv: BeamConvention, info: ImageInfo,
+                 footprint: np.ndarray | None = None) -> np.ndarray | None:
+    """The primary beam A on the pixels of ``info`` (float64, same shape), NaN where A is
     below the convention's cutoff or 0 (outside the field); None if no beam is known or it is
     A = 1 everywhere (nothing to flatten).
 
     Used to measure an image's noise where it is flat: the noise of a primary-beam corrected
     image grows as 1/A away from the pointing, and that of ``image * A`` does not.
+
+    Parameters
+    ----------
+    conv, info
+        The image's beam convention (:func:`image_beam`) and the image.
+    footprint
+        Optional bool mask of the image's shape (e.g. :func:`xstack.imstack.kernels.
+        stamp_footprint`): a beam model is then evaluated only there, NaN elsewhere -- the
+        pixel-to-sky transform is most of the cost, and a few stamps read a small part of a
+        large image. A beam given on the grid is used whole.
     """
     if conv.values is None or conv.unit:
         return None
@@ -350,19 +361,31 @@ def beam_on_grid(conv: BeamConvention, info: ImageInfo) -> np.ndarray | None:
         beam = np.array(conv.grid, dtype=np.float64)
     else:
         ny, nx = info.shape
-        beam = np.empty((ny, nx), dtype=np.float64)
+        if footprint is not None and np.shape(footprint) != (ny, nx):
+            raise ValueError(f"footprint has shape {np.shape(footprint)}, the image {(ny, nx)}")
+        beam = np.full((ny, nx), np.nan, dtype=np.float64)
         xs = np.arange(nx, dtype=np.float64)
         for y0 in range(0, ny, GRID_ROWS):
             y1 = min(ny, y0 + GRID_ROWS)
             px, py = np.meshgrid(xs, np.arange(y0, y1, dtype=np.float64))
+            if footprint is not None:
+                use = np.asarray(footprint[y0:y1], dtype=bool)
+                if not use.any():
+                    continue
+                px, py = px[use], py[use]
             ra, dec = info.wcs.pixel_to_world_values(px, py)
-            beam[y0:y1] = np.asarray(conv.values(np.asarray(ra), np.asarray(dec)), np.float64)
+            a = np.asarray(conv.values(np.asarray(ra), np.asarray(dec)), np.float64)
+            if footprint is None:
+                beam[y0:y1] = a
+            else:
+                beam[y0:y1][use] = a
     with np.errstate(invalid="ignore"):
         beam[~(np.isfinite(beam) & (beam > 0) & (beam >= conv.cutoff))] = np.nan
     return beam
 
 
-def flat_noise_image(info: ImageInfo, conv: BeamConvention) -> tuple[np.ndarray, bool]:
+def flat_noise_image(info: ImageInfo, conv: BeamConvention,
+                     footprint: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
     """The image on which to measure the local noise sigma_k, where that noise is flat.
 
     An image that is not primary-beam corrected is its own (its noise is the same over the
@@ -372,13 +395,16 @@ def flat_noise_image(info: ImageInfo, conv: BeamConvention) -> tuple[np.ndarray,
     corrected flux once divided by A at the position -- except for the last case, where it
     already is (:func:`noise_to_corrected`).
 
+    ``footprint`` (bool, the image's shape) limits a beam model's evaluation to the pixels
+    the noise stamps read (:func:`beam_on_grid`); the flattened image is NaN elsewhere.
+
     Returns
     -------
     image, flattened
         The 2-D image (the input's own array when not flattened; never modified), and
         whether it is the corrected image times A.
     """
-    beam = beam_on_grid(conv, info) if conv.corrected else None
+    beam = beam_on_grid(conv, info, footprint) if conv.corrected else None
     if beam is None:
         return info.data, False
     return np.asarray(info.data, dtype=np.float64) * beam, True

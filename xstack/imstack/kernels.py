@@ -105,6 +105,48 @@ def extract_stamps(image: np.ndarray, x: np.ndarray, y: np.ndarray, size: int,
     return out, ix, iy
 
 
+def stamp_footprint(shape: tuple[int, int], x: np.ndarray, y: np.ndarray, size: int
+                    ) -> np.ndarray:
+    """The pixels of an image that the nearest-pixel stamps of :func:`extract_stamps` read.
+
+    The union of the ``size`` x ``size`` windows centered on the pixels nearest to
+    ``(x, y)``, clipped to the image, built with a summed-area table so that it costs
+    O(n + pixels) for any number of positions.
+
+    Parameters
+    ----------
+    shape
+        ``(ny, nx)`` of the image.
+    x, y
+        0-based pixel coordinates, shape (n,) (non-finite ones read nothing).
+    size
+        Stamp side in pixels.
+
+    Returns
+    -------
+    footprint
+        bool (ny, nx), True where some stamp reads the pixel.
+    """
+    ny, nx = (int(v) for v in shape)
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    ok = np.isfinite(x) & np.isfinite(y)
+    ix, iy = nearest_pixel(x[ok]), nearest_pixel(y[ok])
+    lo = size // 2
+    x0, y0 = np.clip(ix - lo, 0, nx), np.clip(iy - lo, 0, ny)
+    x1, y1 = np.clip(ix - lo + size, 0, nx), np.clip(iy - lo + size, 0, ny)
+    keep = (x1 > x0) & (y1 > y0)
+    x0, x1, y0, y1 = x0[keep], x1[keep], y0[keep], y1[keep]
+    # +1 at each window's first corner, -1 at the two next to it, +1 at the far one: the
+    # cumulative sums over both axes count the windows covering each pixel
+    edges = np.zeros((ny + 1, nx + 1), dtype=np.int32)
+    np.add.at(edges, (y0, x0), 1)
+    np.add.at(edges, (y0, x1), -1)
+    np.add.at(edges, (y1, x0), -1)
+    np.add.at(edges, (y1, x1), 1)
+    return np.cumsum(np.cumsum(edges, axis=0), axis=1)[:ny, :nx] > 0
+
+
 def fourier_shift(stamps: np.ndarray, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:
     """Shift each stamp by (dy, dx) pixels with the Fourier shift theorem: out(r) = in(r - d).
 

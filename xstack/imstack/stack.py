@@ -743,7 +743,10 @@ def _local_noise(plan: _Plan, options: ImstackOptions, stamps: np.ndarray, rows:
     """
     infos = plan.inputs.infos
     images = np.unique(img_idx)
-    flat = {int(i): flat_noise_image(infos[i], plan.convs[i]) for i in images}
+    # a beam model is evaluated only on the pixels the noise stamps read (beam_on_grid)
+    flat = {int(i): flat_noise_image(infos[i], plan.convs[i], kernels.stamp_footprint(
+        infos[i].shape, plan.pix[rows[img_idx == i], i, 0], plan.pix[rows[img_idx == i], i, 1],
+        plan.noise_size)) for i in images}
     flattened = any(f for _, f in flat.values())
     if plan.noise_size == options.stamp_size and not flattened:
         return kernels.noise_sigma(stamps, plan.mask, options.noise_estimator)[0], False

@@ -310,6 +310,27 @@ def test_types_refused():
         rr.reproduce(1, realizations=0, outdir="unused")
 
 
+def test_outdir_that_is_a_file_is_one_line_and_left_alone(tmp_path, capsys):
+    """--outdir naming a file (or a type directory that is a file) is refused in one line
+    that names the option, before anything runs, and the file is not touched."""
+    from xstack.cli import main
+
+    afile = tmp_path / "notadir"
+    afile.write_text("keep me")
+    with pytest.raises(OptionError, match="is not a directory"):
+        rr.reproduce(1, realizations=1, scale=0.01, outdir=afile)
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "type1").write_text("keep me too")
+    with pytest.raises(OptionError, match="type1 exists and is not a directory"):
+        rr.reproduce(1, realizations=1, scale=0.01, outdir=tmp_path / "out")
+    assert main(["reproduce", "--type", "1", "--realizations", "1", "--scale", "0.01",
+                 "--outdir", str(afile), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "--outdir" in err[0], err
+    assert afile.read_text() == "keep me"
+    assert (tmp_path / "out" / "type1").read_text() == "keep me too"
+
+
 def test_type7_fits_sizes(tmp_path):
     """Type 7's chain adds the Gaussian fits (uv beyond 5000 m, image with the PSF): sizes
     and fitted fluxes per realisation, their mean and scatter in ``sizes``. A coarse image

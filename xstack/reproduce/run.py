@@ -567,6 +567,19 @@ def _results(n: int, seeds: list[int], scale: float, workdir: Path, keep: bool,
         yield fut.result()
 
 
+def _make_workdir(outdir: Path, workdir: Path) -> None:
+    """Create a type's directory under ``outdir``, or say in one line why it cannot be."""
+    for path in (outdir, workdir):
+        if path.exists() and not path.is_dir():
+            raise OptionError(f"{path} exists and is not a directory: give another outdir",
+                              option="outdir")
+    try:
+        workdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OptionError(f"cannot create {workdir}: {exc.strerror or exc}",
+                          option="outdir") from None
+
+
 def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100,
               scale: float = 1.0, outdir: str | os.PathLike = "xstack-reproduce",
               progress: bool = False, client: Any = None,
@@ -634,7 +647,7 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
     for n in numbers:
         t0 = time.perf_counter()
         workdir = outdir / f"type{n}"
-        workdir.mkdir(parents=True, exist_ok=True)
+        _make_workdir(outdir, workdir)
         _warn_stale(workdir)
         path = workdir / JSONL
         proc = (procedures or {}).get(n)

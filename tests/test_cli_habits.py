@@ -185,3 +185,30 @@ def test_imstack_result_per_beam(inputs, tmp_path, capsys):
     out = capsys.readouterr().out
     assert re.search(r"stacked flux -?[\d.]+ ± [\d.]+ [mµ]?Jy/beam at the stacking position "
                      r"from 16 positions", out), out
+
+
+@pytest.mark.parametrize("command", ["convert", "export", "simulate", "image", "subtract",
+                                     "uvstack", "imstack"])
+def test_output_under_a_file_is_one_line_and_loses_nothing(command, inputs, tmp_path, capsys):
+    """An output path whose parent is a regular file cannot be made: every command says so in
+    one ``error:`` line (no traceback), exits 1, and leaves the file as it was."""
+    blocker = tmp_path / "afile"
+    blocker.write_text("keep me")
+    assert main([*_argv(command, inputs, blocker), "-q"]) == 1
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1, err
+    assert errors[0].startswith(f"error: {blocker} is a file, not a directory: "), errors
+    assert ".partial-" not in errors[0], errors
+    assert "Traceback" not in err
+    assert blocker.read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+
+
+def test_demo_outdir_under_a_file(tmp_path, capsys):
+    blocker = tmp_path / "afile"
+    blocker.write_text("keep me")
+    assert main(["demo", "--outdir", str(blocker / "sub"), "-q"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {blocker / 'sub'}: Not a directory"], err
+    assert blocker.read_text() == "keep me"

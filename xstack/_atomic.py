@@ -50,6 +50,9 @@ def _check(loc: Location, overwrite: bool) -> None:
         if loc.local:
             raise XstackError(f"{Path(loc.path).parent}: output directory does not exist")
         raise XstackError(f"{loc.url}: its bucket does not exist")
+    if loc.local and not Path(loc.path).parent.is_dir():
+        raise XstackError(f"{Path(loc.path).parent} is a file, not a directory: "
+                          f"{Path(loc.path).name} cannot be written in it")
 
 
 def check_output(path: str | os.PathLike, overwrite: bool,

@@ -248,6 +248,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             except XstackError as exc:
                 error(name_flags(str(exc), exc.option, sub))
                 return 1
+            except OSError as exc:
+                # a path the user gave that cannot be read or made (a file where a directory
+                # should be, no permission, a full disk): one line, as for any bad input;
+                # an OSError that names no file is a bug and keeps its traceback
+                if exc.filename is None:
+                    raise
+                where = exc.filename if exc.filename2 is None else f"{exc.filename} -> {exc.filename2}"
+                error(f"{where}: {exc.strerror or exc}")
+                return 1
             except Terminated:
                 error("terminated (SIGTERM)")
                 return 128 + signal.SIGTERM

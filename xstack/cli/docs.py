@@ -43,7 +43,9 @@ expect, see the [tutorial](tutorial.md).
   `--no-progress`.
 - **Warnings**: one line `warning: ...` that names the option concerned (`--errors`,
   `--region`). **Errors**: one line `error: ...` on stderr, exit status 1, nothing written
-  (also for a damaged store: the line names the store, the variable, the chunk and its file).
+  (also for a damaged store: the line names the store, the variable, the chunk and its file;
+  and for a path that cannot be read or made: `error: PATH: Not a directory`, `Permission
+  denied`, `No space left on device`).
   A bad command line (unknown option, bad value or unit): one line `error: COMMAND: ...`,
   exit status 2, no usage block (`--help` shows it). Ctrl-C: `error: interrupted`, exit
   status 130. SIGTERM (`kill`, a batch scheduler's time limit): `error: terminated (SIGTERM)`,

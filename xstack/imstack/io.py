@@ -20,6 +20,7 @@ from astropy.wcs import WCS
 from xstack.beams import BAND_TOP_KEY, TELESCOPE_DISH_DIAMETERS
 from xstack.errors import XstackError, XstackWarning
 from xstack.imaging.fitsio import read_wcs
+from xstack.imstack import kernels
 
 #: Physical dish diameters (m) of telescopes whose FITS TELESCOP we recognise (one home:
 #: :data:`xstack.beams.TELESCOPE_DISH_DIAMETERS`).
@@ -325,6 +326,11 @@ class BeamConvention:
     grid: np.ndarray | None = None
     unit: bool = False
 
+    @property
+    def model_on_grid(self) -> bool:
+        """Whether :func:`beam_on_grid` has to evaluate a model (no array on the grid)."""
+        return self.values is not None and not self.unit and self.grid is None
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-friendly summary (what the results record)."""
         return {"image_corrected": bool(self.corrected), "corrected_from": self.corrected_from,
@@ -357,7 +363,7 @@ def beam_on_grid(conv: BeamConvention, info: ImageInfo,
     """
     if conv.values is None or conv.unit:
         return None
-    if conv.grid is not None:
+    if not conv.model_on_grid:
         beam = np.array(conv.grid, dtype=np.float64)
     else:
         ny, nx = info.shape
@@ -385,7 +391,8 @@ def beam_on_grid(conv: BeamConvention, info: ImageInfo,
 
 
 def flat_noise_image(info: ImageInfo, conv: BeamConvention,
-                     footprint: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+                     stamps: tuple[np.ndarray, np.ndarray, int] | None = None
+                     ) -> tuple[np.ndarray, bool]:
     """The image on which to measure the local noise sigma_k, where that noise is flat.
 
     An image that is not primary-beam corrected is its own (its noise is the same over the
@@ -395,8 +402,10 @@ def flat_noise_image(info: ImageInfo, conv: BeamConvention,
     corrected flux once divided by A at the position -- except for the last case, where it
     already is (:func:`noise_to_corrected`).
 
-    ``footprint`` (bool, the image's shape) limits a beam model's evaluation to the pixels
-    the noise stamps read (:func:`beam_on_grid`); the flattened image is NaN elsewhere.
+    ``stamps`` = ``(x, y, size)``, the noise stamps' centres (0-based pixels) and side,
+    limits a beam model's evaluation to the pixels they read (:func:`beam_on_grid` on their
+    :func:`~xstack.imstack.kernels.stamp_footprint`, made only when a model is evaluated);
+    the flattened image is NaN elsewhere.
 
     Returns
     -------
@@ -404,7 +413,12 @@ def flat_noise_image(info: ImageInfo, conv: BeamConvention,
         The 2-D image (the input's own array when not flattened; never modified), and
         whether it is the corrected image times A.
     """
-    beam = beam_on_grid(conv, info, footprint) if conv.corrected else None
+    if not conv.corrected:
+        return info.data, False
+    footprint = None
+    if stamps is not None and conv.model_on_grid:
+        footprint = kernels.stamp_footprint(info.shape, *stamps)
+    beam = beam_on_grid(conv, info, footprint)
     if beam is None:
         return info.data, False
     return np.asarray(info.data, dtype=np.float64) * beam, True

@@ -138,13 +138,16 @@ def stamp_footprint(shape: tuple[int, int], x: np.ndarray, y: np.ndarray, size: 
     keep = (x1 > x0) & (y1 > y0)
     x0, x1, y0, y1 = x0[keep], x1[keep], y0[keep], y1[keep]
     # +1 at each window's first corner, -1 at the two next to it, +1 at the far one: the
-    # cumulative sums over both axes count the windows covering each pixel
-    edges = np.zeros((ny + 1, nx + 1), dtype=np.int32)
-    np.add.at(edges, (y0, x0), 1)
-    np.add.at(edges, (y0, x1), -1)
-    np.add.at(edges, (y1, x0), -1)
-    np.add.at(edges, (y1, x1), 1)
-    return np.cumsum(np.cumsum(edges, axis=0), axis=1)[:ny, :nx] > 0
+    # cumulative sums over both axes count the windows covering each pixel (in place and in
+    # int32: numpy's default int64 accumulation of a new array costs 8x the time)
+    count = np.zeros((ny + 1, nx + 1), dtype=np.int32)
+    np.add.at(count, (y0, x0), 1)
+    np.add.at(count, (y0, x1), -1)
+    np.add.at(count, (y1, x0), -1)
+    np.add.at(count, (y1, x1), 1)
+    np.cumsum(count, axis=0, out=count)
+    np.cumsum(count, axis=1, out=count)
+    return count[:ny, :nx] > 0
 
 
 def fourier_shift(stamps: np.ndarray, dy: np.ndarray, dx: np.ndarray) -> np.ndarray:

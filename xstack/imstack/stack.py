@@ -742,21 +742,21 @@ def _local_noise(plan: _Plan, options: ImstackOptions, stamps: np.ndarray, rows:
     when they have the noise stamp's size and no beam is known for a corrected image.
     """
     infos = plan.inputs.infos
-    images = np.unique(img_idx)
-    # a beam model is evaluated only on the pixels the noise stamps read (beam_on_grid)
-    flat = {int(i): flat_noise_image(infos[i], plan.convs[i], kernels.stamp_footprint(
-        infos[i].shape, plan.pix[rows[img_idx == i], i, 0], plan.pix[rows[img_idx == i], i, 1],
-        plan.noise_size)) for i in images}
+    of_image = {int(i): np.flatnonzero(img_idx == i) for i in np.unique(img_idx)}
+    # the noise stamps' centres on each image (a beam model is evaluated only where they read)
+    centres = {i: (plan.pix[rows[sel], i, 0], plan.pix[rows[sel], i, 1])
+               for i, sel in of_image.items()}
+    flat = {i: flat_noise_image(infos[i], plan.convs[i], (*centres[i], plan.noise_size))
+            for i in of_image}
     flattened = any(f for _, f in flat.values())
     if plan.noise_size == options.stamp_size and not flattened:
         return kernels.noise_sigma(stamps, plan.mask, options.noise_estimator)[0], False
     sigma = np.full(rows.size, np.nan)
-    for i in images:
-        conv, (image, was_flattened) = plan.convs[i], flat[int(i)]
-        sel = np.flatnonzero(img_idx == i)
+    for i, sel in of_image.items():
+        conv, (image, was_flattened) = plan.convs[i], flat[i]
         r = rows[sel]
-        sig, _ = kernels.stamp_noise(image, plan.pix[r, i, 0], plan.pix[r, i, 1],
-                                     plan.noise_size, plan.noise_mask, options.noise_estimator)
+        sig, _ = kernels.stamp_noise(image, *centres[i], plan.noise_size, plan.noise_mask,
+                                     options.noise_estimator)
         a_k = plan.atten[r, i]
         if was_flattened and not np.all(np.isfinite(a_k)):  # A not needed for the weights
             a_k = np.asarray(conv.values(plan.inputs.ra[r], plan.inputs.dec[r]), np.float64)

@@ -231,8 +231,7 @@ def measure_local_noise(image: Any, positions: Any, *, stamp_size: int | None = 
     pbcor = pb_corrected_from_header(info.header)
     conv = image_beam(info) if pbcor is False else image_beam(info, image_corrected=True)
     todo = np.flatnonzero(on_image & ~blanked)
-    data, flattened = flat_noise_image(
-        info, conv, kernels.stamp_footprint(info.shape, px[todo], py[todo], size))
+    data, flattened = flat_noise_image(info, conv, (px[todo], py[todo], size))
     scaled = conv.values is not None and (pbcor is False or flattened)
 
     sigma = np.full(n, np.nan)

@@ -24,6 +24,10 @@ truth computed here with plain numpy, outside the code under test):
 7. ``sim``      the simulator's model kernels (``xstack.sim.kernels``: per row, per antenna,
                float32 phases without w) and the w-term switched off; error = max |V - V_true|
                / sum S with V_true = paper eq. 1 in plain numpy.
+8. ``threads``  ``xstack.imaging.clean.clean_data(reproducible=True/False)`` deep into the
+               noise of a crowded field, run twice on the same data: one thread per ducc0
+               gridding and prediction against all threads; error = max |R_2 - R_1| / rms(R_1)
+               of the two runs' residual images (0: the same bits), components in the note.
 
 Output: one Markdown table per knob and a summary table, printed and (``--markdown``) written;
 a Pareto plot (``--plot``, x = time, y = error, log-log).
@@ -56,7 +60,7 @@ import numpy as np
 C = 299_792_458.0
 ARCSEC = math.pi / 180 / 3600
 CENTER = (math.radians(57.2957916666667), math.radians(-30.0))
-KNOBS = ("phase", "gridder", "pixel", "mc", "binning", "chunk", "sim")
+KNOBS = ("phase", "gridder", "pixel", "mc", "binning", "chunk", "sim", "threads")
 LINES: list[str] = []
 
 
@@ -89,6 +93,8 @@ class Sizes:
     chunk_sizes: tuple[int, ...] = (1, 8, 60, 240)
     sim_ntime: int = 40
     sim_nsrc: int = 300
+    threads_ntime: int = 240
+    threads_size: int = 2048
 
 
 SIZES = {
@@ -96,12 +102,12 @@ SIZES = {
     "quick": Sizes(phase_ntime=20, phase_npos=200, grid_ntime=20, grid_size=256,
                    pix_ntime=20, pix_nsrc=16, mc_ntime=8, mc_npos=20, mc_r=(10, 30, 100),
                    mc_pool=1000, fit_ntime=40, chunk_ntime=40, chunk_sizes=(2, 10, 40),
-                   sim_ntime=8, sim_nsrc=100),
+                   sim_ntime=8, sim_nsrc=100, threads_ntime=40, threads_size=512),
     "tiny": Sizes(phase_ntime=4, phase_npos=30, nufft_eps=(), grid_ntime=4, grid_size=128,
                   grid_eps=(1e-2, 1e-5, 1e-9), pix_ntime=8, pix_nsrc=9, pix_div=(3, 8),
                   mc_ntime=4, mc_npos=10, mc_r=(10, 40), mc_pool=400, fit_ntime=12,
                   fit_nbins=(10, 40), chunk_ntime=8, chunk_sizes=(2, 8), sim_ntime=3,
-                  sim_nsrc=20),
+                  sim_nsrc=20, threads_ntime=6, threads_size=256),
 }
 
 
@@ -481,6 +487,42 @@ def knob_sim(sz: Sizes, rng) -> list[Row]:
 
 
 # ---------------------------------------------------------------------------- output
+def knob_threads(sz: Sizes, rng) -> list[Row]:
+    """CLEAN run twice, reproducible (one thread per ducc0 call) against threaded."""
+    from xstack.imaging.clean import clean_data
+
+    uvw3, a1, a2, arr, times = array_uvw(sz.threads_ntime, "vla.a")
+    freq = np.array([1.35e9, 1.45e9])
+    cell = 0.4
+    ra, dec = box_positions(60, 0.4 * cell * sz.threads_size, rng)
+    l, m, n1 = lmn(ra, dec)
+    sigma = 1.0  # Jy per real/imaginary part per visibility
+    shape = uvw3.shape[:2] + (freq.size, 2)
+    thermal = sigma / math.sqrt(np.prod(shape))
+    flux = rng.uniform(3, 30, l.size) * thermal  # sources of 3 to 30 image sigma
+    u, v, w_ = (uvw3[..., k][..., None] * freq / C for k in range(3))
+    vis = np.zeros(u.shape, complex)
+    for k in range(l.size):  # paper eq. 1 with the w-term
+        vis += flux[k] * np.exp(2j * np.pi * (u * l[k] + v * m[k] + w_ * n1[k]))
+    noisy = vis[..., None] + sigma * (rng.standard_normal(shape) + 1j * rng.standard_normal(shape))
+    ds = partition(noisy.astype(np.complex64), np.full(shape, 1 / sigma**2), uvw3, a1, a2, arr,
+                   times, freq)
+    kw = dict(size=sz.threads_size, cell_arcsec=cell, niter=50_000, threshold=2 * thermal,
+              algorithm="clark", epsilon=1e-4)
+    clean_data(ds, **dict(kw, size=64, niter=10))  # warm-up
+    rows = []
+    for reproducible in (True, False):
+        runs = [measure(clean_data, ds, reproducible=reproducible, **kw) for _ in range(2)]
+        (wall, cpu, peak, (_, c1)), (_, _, _, (_, c2)) = runs
+        err = float(np.max(np.abs(c2.residual - c1.residual)) / np.std(c1.residual))
+        rows.append(Row("threads", "one thread per ducc0 call" if reproducible else
+                        "threaded ducc0", wall, cpu, peak, err,
+                        f"{sz.threads_size}^2, {np.prod(shape):,} vis; components "
+                        f"{c1.n_components} / {c2.n_components}, {c1.n_major} major cycles; "
+                        f"second run {runs[1][0]:.2f} s", reproducible))
+    return rows
+
+
 def _fmt(x: float, spec: str) -> str:
     return "-" if not np.isfinite(x) else format(x, spec)
 
@@ -525,7 +567,7 @@ def plot(rows: list[Row], path: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(10, 7))
-    markers = dict(zip(KNOBS, "osD^vPX"))
+    markers = dict(zip(KNOBS, "osD^vPX*"))
     for knob in KNOBS:
         sel = [r for r in rows if r.knob == knob and np.isfinite(r.wall) and np.isfinite(r.error)]
         if not sel:

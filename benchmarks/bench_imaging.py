@@ -10,6 +10,10 @@ Run ``python benchmarks/bench_imaging.py [--time-step S] [--skip-big]``; prints 
 3. CLEAN (image plane, Högbom vs Clark) time vs number of components.
 4. ``--clark-update``: one Clark residual update at 4000 x 4000, scipy's ``fftconvolve`` (as
    before) against :class:`xstack.imaging.clean.PsfConvolver` (the PSF's transform kept).
+5. ``--only reproducible``: reproducible (one thread per gridding and prediction, the
+   default) against threaded ducc0 (``reproducible=False``, ``xstack image
+   --threaded-gridding``): time of the dirty image + PSF and of a major/minor-cycle CLEAN of
+   the type-3 bright sources, each run twice, and whether the second run gave the same bits.
 """
 
 from __future__ import annotations
@@ -235,6 +239,62 @@ def bench_clean_data(rows: list[str], time_step: float, size: int, algorithm: st
                 f"{peak_rss_mb():.0f} |")
 
 
+def _type3_bright(time_step: float, size: int):
+    """The type-3 scene of :func:`bench_clean_data`: (partition, thermal noise, true flux)."""
+    from xstack.coords import lm_to_radec, radec_to_lmn
+    from xstack.sim.kernels import model_visibilities
+
+    ds = big_partition(time_step)
+    rng = np.random.default_rng(5)
+    sigma = 10e-3
+    vis = ds.VISIBILITY.values
+    vis *= sigma
+    vis -= sigma  # remove the 1 Jy source of big_partition (vis = sigma * (noise + 1))
+    half = 0.4 * size * 0.45 * ARCSEC
+    dl, dm = rng.uniform(-half, half, size=(2, 10))
+    ra, dec = lm_to_radec(dl, dm, *FIELD)
+    l, m, _, n1 = radec_to_lmn(ra, dec, *FIELD)
+    flux = rng.uniform(5e-3, 10e-3, 10)
+    model = model_visibilities(ds.UVW.values.reshape(-1, 3), ds.frequency.values, l, m, n1, flux)
+    vis += model.reshape(vis.shape[:3])[..., None].astype(np.complex64)
+    ds = ds.assign(VISIBILITY=(ds.VISIBILITY.dims, vis),
+                   WEIGHT=(ds.WEIGHT.dims, np.full(vis.shape, 1 / sigma**2, np.float32)))
+    return ds, sigma / math.sqrt(vis.size), float(flux.sum())
+
+
+def bench_reproducible(rows: list[str], time_step: float, size: int, nsigma: float,
+                       epsilon: float) -> None:
+    """Reproducible against threaded ducc0: time, and the same bits on a second run."""
+    from xstack.imaging.clean import clean_data
+
+    ds, thermal, total = _type3_bright(time_step, size)
+    out: dict[bool, list] = {}
+    for reproducible in (True, False):
+        for _ in range(2):
+            t = time.process_time(), time.perf_counter()
+            img = make_image(ds, size=size, cell_arcsec=0.45, epsilon=epsilon,
+                             reproducible=reproducible)
+            t_img = time.process_time() - t[0], time.perf_counter() - t[1]
+            t = time.process_time(), time.perf_counter()
+            _, cres = clean_data(ds, size=size, cell_arcsec=0.45, niter=20000,
+                                 threshold=nsigma * thermal, algorithm="clark", epsilon=epsilon,
+                                 reproducible=reproducible)
+            t_cl = time.process_time() - t[0], time.perf_counter() - t[1]
+            out.setdefault(reproducible, []).append((img.image, cres, t_img, t_cl))
+    ref = out[True][0][0]
+    for reproducible, runs in out.items():
+        (im1, c1, ti, tc), (im2, c2, ti2, tc2) = runs
+        rows.append(
+            f"| {'reproducible (default)' if reproducible else 'threaded'} | "
+            f"{ds.VISIBILITY.size / 1e6:.1f} | {size} | {epsilon:g} | "
+            f"{ti[1]:.1f} / {ti2[1]:.1f} | {tc[1]:.0f} / {tc2[1]:.0f} | {tc[0]:.0f} | "
+            f"{c1.n_components} / {c2.n_components} | {c1.n_major} | "
+            f"{'yes' if np.array_equal(im1, im2) else 'no'} | "
+            f"{'yes' if np.array_equal(c1.model, c2.model) else 'no'} | "
+            f"{np.abs(im1 - ref).max() / np.abs(ref).max():.1e} | "
+            f"{c1.model.sum() / total:.4f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--time-step", type=float, default=10.0,
@@ -248,7 +308,20 @@ def main() -> None:
     parser.add_argument("--clark-update", action="store_true",
                         help="only time Clark's residual update (old fftconvolve vs kept PSF "
                              "transform)")
+    parser.add_argument("--only", choices=["reproducible"], default=None,
+                        help="reproducible: reproducible against threaded gridding")
+    parser.add_argument("--epsilon", type=float, default=1e-4,
+                        help="gridder accuracy of --only reproducible (reproduce's 1e-4)")
     args = parser.parse_args()
+    if args.only == "reproducible":
+        rows = ["## Reproducible against threaded gridding (type 3 bright sources, Clark CLEAN)"
+                "\n", "| ducc0 | Mvis | image | epsilon | dirty + PSF, run 1 / 2 (s) "
+                "| CLEAN, run 1 / 2 (s) | CLEAN CPU (s) | components, run 1 / 2 | major cycles "
+                "| same image bits | same model bits | image vs reproducible / peak "
+                "| CLEANed / true |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        bench_reproducible(rows, args.time_step, args.size, args.nsigma, args.epsilon)
+        print("\n".join(rows))
+        return
     if args.clark_update:
         rows = ["## Clark residual update: fftconvolve vs PsfConvolver\n",
                 "| image | components | fftconvolve (s) | PsfConvolver (s) | its setup, once (s) "

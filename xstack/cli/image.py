@@ -47,6 +47,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="divide the image by the primary beam (NaN below the beam cutoff)")
     p.add_argument("--no-wterm", action="store_true", help="ignore the w-term (narrow fields)")
     p.add_argument("--epsilon", type=float, default=1e-6, help="gridder accuracy (default 1e-6)")
+    p.add_argument("--threaded-gridding", action="store_true",
+                   help="grid each image with all threads: ~1.3x faster on two cores, but the "
+                        "image's last bits, and so CLEAN's components, vary from run to run "
+                        "(default: one thread per image, the same data give the same image)")
     p.add_argument("--partition", action="append", default=None, metavar="NAME",
                    help="partition name or glob pattern to image (repeatable; default all; "
                         "CLEAN needs a single pointing)")
@@ -159,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     common = dict(size=args.size, cell_arcsec=args.cell, weighting=args.weighting,
                   robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
                   epsilon=args.epsilon, partitions=args.partition,
+                  reproducible=not args.threaded_gridding,
                   progress=not args.no_progress, autocorrelations=args.autocorrelations)
     if args.pb_cutoff is not None and not 0 < args.pb_cutoff < 1:
         raise XstackError("--pb-cutoff must be between 0 and 1")
@@ -264,6 +269,7 @@ def _run_cube(args: argparse.Namespace) -> int:
                      cell_arcsec=args.cell, channels=args.channels, weighting=args.weighting,
                      robust=args.robust, wterm=not args.no_wterm, pbcor=args.pbcor,
                      epsilon=args.epsilon, partitions=args.partition,
+                     reproducible=not args.threaded_gridding,
                      progress=not args.no_progress, autocorrelations=args.autocorrelations,
                      out=args.out, overwrite=args.overwrite, keep=False,
                      velocity_resolution=args.velocity_resolution,

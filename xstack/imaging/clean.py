@@ -259,8 +259,8 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
                weighting: str = "natural", robust: float = 0.0, wterm: bool = True,
                pbcor: bool = False, epsilon: float = 1e-6,
                partitions: str | Sequence[str] | None = None, nthreads: int = 0,
-               progress: bool = False, autocorrelations: bool = False
-               ) -> tuple[Any, CleanResult]:
+               progress: bool = False, autocorrelations: bool = False,
+               reproducible: bool = True) -> tuple[Any, CleanResult]:
     """Image a store and CLEAN it with major/minor cycles.
 
     Each minor cycle cleans the residual image down to
@@ -269,6 +269,11 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
     exact up to the PSF's truncation at the image edge); each major cycle then recomputes the
     exact residual through ducc0 (predict the model, image it with the same weights, subtract
     from the dirty image).
+
+    CLEAN picks the largest residual pixel at every step, so an image that differs in its
+    last bits gives other components: ``reproducible`` (default) grids with one thread per
+    image, and the same data then give the same model, whatever the threads (see
+    :func:`xstack.imaging.image.make_image`).
 
     Returns
     -------
@@ -282,7 +287,8 @@ def clean_data(data: Any, *, size: int | Sequence[int], cell_arcsec: float, nite
 
     imager = Imager(data, size=size, cell_arcsec=cell_arcsec, weighting=weighting, robust=robust,
                     wterm=wterm, epsilon=epsilon, partitions=partitions, nthreads=nthreads,
-                    progress=progress, autocorrelations=autocorrelations)
+                    progress=progress, autocorrelations=autocorrelations,
+                    reproducible=reproducible)
     stats = imager.dirty_and_psf()
     dirty, psf = stats["dirty"], stats["psf"]
     mask_b = _check(dirty, psf, mask, gain, niter, threshold)

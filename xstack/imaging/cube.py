@@ -324,7 +324,8 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
               progress: bool = False, autocorrelations: bool = False,
               out: str | os.PathLike | None = None, overwrite: bool = False,
               keep: bool | None = None, velocity_resolution: float | None = None,
-              line_frequency: Any = None, frame: str = "lsrk") -> CubeResult:
+              line_frequency: Any = None, frame: str = "lsrk",
+              reproducible: bool = True) -> CubeResult:
     """Dirty Stokes I image cube of a store: one plane per ``channels`` channels, or per
     ``velocity_resolution`` km/s of radio velocity about ``line_frequency`` in ``frame``.
 
@@ -333,7 +334,7 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
     data
         Store path, DataTree or partition Dataset (one pointing, one frequency axis).
     size, cell_arcsec, weighting, robust, wterm, pbcor, epsilon, partitions, nthreads,
-    progress, autocorrelations
+    progress, autocorrelations, reproducible
         As :func:`xstack.imaging.image.make_image`, per plane.
     channels
         Consecutive channels averaged (imaged together) per plane, >= 1.
@@ -392,7 +393,8 @@ def make_cube(data: Any, *, size: int | Sequence[int], cell_arcsec: float, chann
                          size=size,
                          cell_arcsec=cell_arcsec, weighting=weighting, robust=robust,
                          wterm=wterm, pbcor=pbcor, epsilon=epsilon, nthreads=nthreads,
-                         progress=progress, autocorrelations=autocorrelations)
+                         progress=progress, autocorrelations=autocorrelations,
+                         reproducible=reproducible)
     freqs: list[float] = []
     widths: list[float] = []
     beams: list[tuple[float, float, float]] = []

@@ -551,8 +551,21 @@ class _GridSpec:
     data_center: tuple[float, ...]
     phase_center: tuple[float, ...]
 
+    reproducible: bool = True
+
     def kw(self, nthreads: int) -> dict[str, Any]:
-        return {"epsilon": self.epsilon, "wterm": self.wterm, "nthreads": nthreads}
+        """ducc0 keywords of a gridding (``vis2dirty``) or a prediction (``dirty2vis``).
+
+        Threaded gridding adds the threads' partial uv grids in the order they finish, so the
+        image differs in its last bits from run to run (1e-6 of the peak in single
+        precision, measured); a threaded prediction differs between thread counts. CLEAN,
+        taking the largest residual pixel at every step, turns either into other components.
+        One thread when ``reproducible``: the same data give the same bits whatever the
+        threads (on a cluster, whatever the workers' threads: its batches and their sums are
+        fixed by the store's chunks, though not the same as the local path's).
+        """
+        return {"epsilon": self.epsilon, "wterm": self.wterm,
+                "nthreads": 1 if self.reproducible else nthreads}
 
 
 class _Read:
@@ -667,14 +680,37 @@ def _density_chunk(spec: _GridSpec, grid: np.ndarray, arrays: Sequence[np.ndarra
     kernels.accumulate_weight_grid(grid, u, freq, w, spec.cell)
 
 
+def _grid_pair(spec: _GridSpec, uvw: np.ndarray, freq: np.ndarray,
+               pair: tuple[np.ndarray, np.ndarray], w: np.ndarray, nthreads: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Grid two sets of visibilities on the same rows (the dirty image and the PSF).
+
+    Single-threaded reproducible gridding runs the two at once (ducc0 releases the GIL), so
+    two cores stay busy; each image is still made by one thread, in a fixed order.
+    """
+    kw = spec.kw(nthreads)
+    threads = nthreads if nthreads > 0 else (os.cpu_count() or 1)
+
+    def one(v: np.ndarray) -> np.ndarray:
+        return grid_visibilities(uvw, freq, v, w, spec.ny, spec.nx, spec.cell, **kw)
+
+    if spec.reproducible and threads > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(2) as pool:
+            first, second = pool.map(one, pair)
+        return first, second
+    return one(pair[0]), one(pair[1])
+
+
 def _dirty_sums(spec: _GridSpec, uvw: np.ndarray, freq: np.ndarray, w: np.ndarray,
                 v: np.ndarray, raw: np.ndarray, nthreads: int) -> dict[str, Any]:
     """One batch's unnormalised dirty image and PSF and its weight sums."""
-    kw = spec.kw(nthreads)
     used = freq[np.any(w > 0, axis=0)]
+    dirty, psf = _grid_pair(spec, uvw, freq, (v, np.ones_like(v)), w, nthreads)
     return {
-        "dirty": grid_visibilities(uvw, freq, v, w, spec.ny, spec.nx, spec.cell, **kw),
-        "psf": grid_visibilities(uvw, freq, np.ones_like(v), w, spec.ny, spec.nx, spec.cell, **kw),
+        "dirty": dirty,
+        "psf": psf,
         "sum_w": float(w.sum()),
         # data weights are 1/sigma^2: the image noise is sum w_img^2 sigma^2 / (sum w_img)^2
         "var_num": float(np.sum(np.where(raw > 0, w * w / np.where(raw > 0, raw, 1.0), 0.0))),
@@ -782,6 +818,8 @@ class Imager:
 
     Holding the weighting (the uniform/Briggs density grid) fixed lets CLEAN's major cycles
     image the model's predicted visibilities with exactly the weights of the dirty image.
+    ``reproducible`` (default) grids each image with one thread, so a CLEAN run again on the
+    same data finds the same components (:func:`make_image`).
     """
 
     def __init__(self, data: Any, *, size: int | Sequence[int], cell_arcsec: float,
@@ -789,7 +827,7 @@ class Imager:
                  epsilon: float = 1e-6, partitions: str | Sequence[str] | None = None,
                  nthreads: int = 0, progress: bool = False,
                  image_center: tuple[float, float] | None = None,
-                 autocorrelations: bool = False) -> None:
+                 autocorrelations: bool = False, reproducible: bool = True) -> None:
         if weighting not in WEIGHTINGS:
             raise OptionError(f"unknown weighting {weighting!r} (use {', '.join(WEIGHTINGS)})")
         if not (1e-12 < epsilon < 0.1):
@@ -803,6 +841,9 @@ class Imager:
         self.weighting, self.robust = weighting, float(robust)
         self.wterm, self.epsilon, self.nthreads = bool(wterm), float(epsilon), int(nthreads)
         self.progress = progress
+        #: grid with one thread per image, so the same data make the same bits (see
+        #: :meth:`_GridSpec.kw`)
+        self.reproducible = bool(reproducible)
         #: the data's phase center (the pointing: primary-beam center)
         self.data_center = tuple(float(x) for x in self.parts[0][1].attrs["phase_center"])
         #: the image's center (reference pixel); visibilities are rephased to it if it differs
@@ -823,7 +864,8 @@ class Imager:
         return _GridSpec(ny=self.ny, nx=self.nx, cell=self.cell, cell_arcsec=self.cell_arcsec,
                          epsilon=self.epsilon, wterm=self.wterm, nthreads=self.nthreads,
                          weighting=self.weighting, f2=self.f2, shift=self._shift,
-                         data_center=self.data_center, phase_center=self.phase_center)
+                         data_center=self.data_center, phase_center=self.phase_center,
+                         reproducible=self.reproducible)
 
     def _iter(self, need_vis: bool, description: str) -> Iterator[tuple[np.ndarray, ...]]:
         """Yield (uvw, freq, imaging weight, vis, data weight) batches of about
@@ -1079,7 +1121,7 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
                progress: bool = False, mosaic_center: tuple[float, float] | None = None,
                pb_cutoff: float | None = None,
                autocorrelations: bool = False, cube: bool = False,
-               channels: int = 1) -> ImageResult | Any:
+               channels: int = 1, reproducible: bool = True) -> ImageResult | Any:
     """Dirty image and PSF (Stokes I, multi-frequency synthesis) of a store.
 
     With ``cube=True``: a dirty image cube instead, one plane per ``channels`` channels
@@ -1118,6 +1160,11 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
         ducc0 threads (0 = all cores).
     progress
         Progress bar on stderr.
+    reproducible
+        Grid and predict with one thread (the dirty image and the PSF side by side), so the
+        same data give the same image, and CLEAN the same components, to the last bit
+        whatever the threads; False uses ``nthreads``: faster (``benchmarks/bench_imaging.py --only
+        reproducible``), but the last bits vary from run to run and between thread counts.
     mosaic_center
         (ra, dec) radians of a mosaic's image center (default: the mean direction of the
         pointings). Ignored for a single pointing.
@@ -1137,16 +1184,18 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
         return make_cube(data, size=size, cell_arcsec=cell_arcsec, channels=channels,
                          weighting=weighting, robust=robust, wterm=wterm, pbcor=pbcor,
                          epsilon=epsilon, partitions=partitions, nthreads=nthreads,
-                         progress=progress, autocorrelations=autocorrelations)
+                         progress=progress, autocorrelations=autocorrelations,
+                         reproducible=reproducible)
     parts = select_partitions(data, partitions, allow_mosaic=True)
     if len(group_pointings(parts)) > 1:
         return make_mosaic(parts, size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                            robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
                            progress=progress, center=mosaic_center, pb_cutoff=pb_cutoff,
-                           autocorrelations=autocorrelations)
+                           autocorrelations=autocorrelations, reproducible=reproducible)
     imager = Imager(dict(parts), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                     robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
-                    progress=progress, autocorrelations=autocorrelations)
+                    progress=progress, autocorrelations=autocorrelations,
+                    reproducible=reproducible)
     stats = imager.dirty_and_psf()
     return imager.result(stats["dirty"], stats["psf"], stats, pbcor=pbcor)
 
@@ -1168,7 +1217,7 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
                 nthreads: int = 0, progress: bool = False,
                 center: tuple[float, float] | None = None,
                 pb_cutoff: float | None = None,
-                autocorrelations: bool = False) -> ImageResult:
+                autocorrelations: bool = False, reproducible: bool = True) -> ImageResult:
     """Linear mosaic of the pointings of a store on one SIN grid (primary-beam corrected).
 
     Each pointing p (the partitions sharing a phase center) is imaged on the common grid,
@@ -1217,7 +1266,7 @@ def make_mosaic(data: Any, *, size: int | Sequence[int], cell_arcsec: float,
         imager = Imager(dict(members), size=size, cell_arcsec=cell_arcsec, weighting=weighting,
                         robust=robust, wterm=wterm, epsilon=epsilon, nthreads=nthreads,
                         progress=progress, image_center=center,
-                        autocorrelations=autocorrelations)
+                        autocorrelations=autocorrelations, reproducible=reproducible)
         try:
             st = imager.dirty_and_psf()
         except NoDataError:  # a fully flagged pointing adds nothing

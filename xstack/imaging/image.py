@@ -523,6 +523,9 @@ def check_uv_coverage(moments: np.ndarray, parts: Sequence[tuple[str, xr.Dataset
 #: Visibilities (rows x channels) gathered per ducc0 call: every call pays for the FFTs of
 #: the whole oversampled grid, so fewer, larger calls are faster; on a cluster, one task's work.
 BATCH_VISIBILITIES = 1 << 24
+#: Batches gridded at once by a reproducible local pass (one thread each; memory grows with
+#: them: a batch's rows and its images).
+MAX_BATCHES_IN_FLIGHT = 4
 #: Key prefix of the gridding tasks on a cluster (one per batch of store chunks).
 GRID_TASK = "xstack-image-grid"
 #: Key prefix of the tasks that sum the gridding tasks' partial images (a tree).
@@ -1015,10 +1018,11 @@ class Imager:
         if client is not None:
             acc: dict[str, Any] | None = self._on_cluster(client, "dirty", "imaging")
         else:
-            acc = None
             spec = self._spec()
-            for uvw, freq, w, v, raw in self._iter(True, "imaging"):
-                acc = _add_sums(acc, _dirty_sums(spec, uvw, freq, w, v, raw, self.nthreads))
+            # a batch grids its dirty image and PSF on two threads
+            acc = self._sum_batches(self._iter(True, "imaging"), 2,
+                                    lambda uvw, freq, w, v, raw: _dirty_sums(
+                                        spec, uvw, freq, w, v, raw, self.nthreads))
         if acc is None or not acc["sum_w"] > 0:
             raise NoDataError("no unflagged parallel-hand visibilities with positive weight to image")
         sum_w = acc["sum_w"]
@@ -1043,11 +1047,44 @@ class Imager:
         if client is not None:
             return self._on_cluster(client, "model", "major cycle", model=model)["image"] \
                 / self.sum_weights
-        out = np.zeros((self.ny, self.nx))
         spec = self._spec()
-        for uvw, freq, w, _, _ in self._iter(False, "major cycle"):
-            out += _model_sums(spec, uvw, freq, w, model, self.nthreads)["image"]
-        return out / self.sum_weights
+        acc = self._sum_batches(self._iter(False, "major cycle"), 1,
+                                lambda uvw, freq, w, _v, _raw: _model_sums(
+                                    spec, uvw, freq, w, model, self.nthreads))
+        if acc is None:
+            return np.zeros((self.ny, self.nx))
+        return acc["image"] / self.sum_weights
+
+    def _sum_batches(self, batches: Iterator[tuple[np.ndarray, ...]], threads_per_batch: int,
+                     work: Any) -> dict[str, Any] | None:
+        """``work(*batch)`` of every batch, the partial sums added in batch order.
+
+        Threaded gridding runs the batches one after the other, each on ``nthreads``. When
+        reproducible (a batch on ``threads_per_batch`` threads), as many batches as the
+        threads allow are in flight at once (each holds its rows and images: memory grows
+        with them) and their sums are still added in batch order, so the image is the
+        same bits as one batch at a time.
+        """
+        threads = self.nthreads if self.nthreads > 0 else (os.cpu_count() or 1)
+        window = min(threads // threads_per_batch, MAX_BATCHES_IN_FLIGHT) \
+            if self.reproducible else 1
+        acc = None
+        if window <= 1:
+            for batch in batches:
+                acc = _add_sums(acc, work(*batch))
+            return acc
+        from collections import deque
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(window) as pool:
+            pending: deque = deque()
+            for batch in batches:
+                pending.append(pool.submit(work, *batch))
+                if len(pending) >= window:
+                    acc = _add_sums(acc, pending.popleft().result())
+            while pending:
+                acc = _add_sums(acc, pending.popleft().result())
+        return acc
 
     def primary_beam(self, frequency: float, main_lobe: bool = False) -> tuple[np.ndarray, float]:
         """Primary-beam power pattern on the image grid at ``frequency`` and its cutoff.

@@ -1194,7 +1194,8 @@ def make_image(data: Any, *, size: int | Sequence[int], cell_arcsec: float, weig
     partitions
         Partition names or glob patterns to image (default: all).
     nthreads
-        ducc0 threads (0 = all cores).
+        Threads (0 = all cores): ducc0's with ``reproducible=False``; else how many batches
+        of visibilities (a batch's dirty image and PSF) are gridded at once, one thread each.
     progress
         Progress bar on stderr.
     reproducible

@@ -26,7 +26,7 @@ import fnmatch
 import math
 import os
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -526,6 +526,8 @@ BATCH_VISIBILITIES = 1 << 24
 #: Batches gridded at once by a reproducible local pass (one thread each; memory grows with
 #: them: a batch's rows and its images).
 MAX_BATCHES_IN_FLIGHT = 4
+#: Threads of a reproducible batch's dirty pass: its dirty image and PSF, side by side.
+_DIRTY_PASS_THREADS = 2
 #: Key prefix of the gridding tasks on a cluster (one per batch of store chunks).
 GRID_TASK = "xstack-image-grid"
 #: Key prefix of the tasks that sum the gridding tasks' partial images (a tree).
@@ -683,6 +685,11 @@ def _density_chunk(spec: _GridSpec, grid: np.ndarray, arrays: Sequence[np.ndarra
     kernels.accumulate_weight_grid(grid, u, freq, w, spec.cell)
 
 
+def _threads(nthreads: int) -> int:
+    """``nthreads``, or every core for 0."""
+    return nthreads if nthreads > 0 else (os.cpu_count() or 1)
+
+
 def _grid_pair(spec: _GridSpec, uvw: np.ndarray, freq: np.ndarray,
                pair: tuple[np.ndarray, np.ndarray], w: np.ndarray, nthreads: int
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -692,15 +699,14 @@ def _grid_pair(spec: _GridSpec, uvw: np.ndarray, freq: np.ndarray,
     two cores stay busy; each image is still made by one thread, in a fixed order.
     """
     kw = spec.kw(nthreads)
-    threads = nthreads if nthreads > 0 else (os.cpu_count() or 1)
 
     def one(v: np.ndarray) -> np.ndarray:
         return grid_visibilities(uvw, freq, v, w, spec.ny, spec.nx, spec.cell, **kw)
 
-    if spec.reproducible and threads > 1:
+    if spec.reproducible and _threads(nthreads) > 1:
         from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(2) as pool:
+        with ThreadPoolExecutor(_DIRTY_PASS_THREADS) as pool:
             first, second = pool.map(one, pair)
         return first, second
     return one(pair[0]), one(pair[1])
@@ -1019,8 +1025,7 @@ class Imager:
             acc: dict[str, Any] | None = self._on_cluster(client, "dirty", "imaging")
         else:
             spec = self._spec()
-            # a batch grids its dirty image and PSF on two threads
-            acc = self._sum_batches(self._iter(True, "imaging"), 2,
+            acc = self._sum_batches(self._iter(True, "imaging"), _DIRTY_PASS_THREADS,
                                     lambda uvw, freq, w, v, raw: _dirty_sums(
                                         spec, uvw, freq, w, v, raw, self.nthreads))
         if acc is None or not acc["sum_w"] > 0:
@@ -1056,7 +1061,7 @@ class Imager:
         return acc["image"] / self.sum_weights
 
     def _sum_batches(self, batches: Iterator[tuple[np.ndarray, ...]], threads_per_batch: int,
-                     work: Any) -> dict[str, Any] | None:
+                     work: Callable[..., dict[str, Any]]) -> dict[str, Any] | None:
         """``work(*batch)`` of every batch, the partial sums added in batch order.
 
         Threaded gridding runs the batches one after the other, each on ``nthreads``. When
@@ -1065,8 +1070,7 @@ class Imager:
         with them) and their sums are still added in batch order, so the image is the
         same bits as one batch at a time.
         """
-        threads = self.nthreads if self.nthreads > 0 else (os.cpu_count() or 1)
-        window = min(threads // threads_per_batch, MAX_BATCHES_IN_FLIGHT) \
+        window = min(_threads(self.nthreads) // threads_per_batch, MAX_BATCHES_IN_FLIGHT) \
             if self.reproducible else 1
         acc = None
         if window <= 1:

@@ -93,8 +93,12 @@ def test_reproducible_clean_repeats_to_the_bit(run):
     t = _by(run[0], "threads")
     assert t["one thread per ducc0 call"].default
     assert t["one thread per ducc0 call"].error == 0.0  # the second run's residual, bit for bit
-    # threaded: the same image within the gridder's accuracy (its bits may differ or not)
-    assert t["threaded ducc0"].error < 1e-3
+    # threaded: the same image at the noise level. Its bits may differ or not; where they
+    # do, CLEAN may pick other components in later cycles and the residuals then differ by
+    # a fraction of the threshold (2 sigma): 0.29 of the residual's rms at full size
+    # (docs/bench/accuracy-vs-time.md), ~1e-6 when the selection does not diverge; two
+    # runs that left different sources behind would differ by many rms.
+    assert t["threaded ducc0"].error < 1.0
 
 
 def test_pareto_front(bench):

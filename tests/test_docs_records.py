@@ -128,3 +128,47 @@ def test_summary_ratios_are_the_records(n):
         assert row[6] == f"{sub.mean() / uv.mean():.3f}"
     assert row[7] == f"{snr(uv) / snr(im):.2f}"
     assert row[8] == f"{paper['uv_snr'] / paper['image_snr']:.2f}"
+
+
+CHECKS = DOCS / "records" / "sigma-check"
+CHECK_TYPES = sorted(int(p.name[4:]) for p in CHECKS.glob("type*")
+                     if (p / "realizations.jsonl").exists())
+
+
+@pytest.mark.parametrize("n", CHECK_TYPES)
+def test_paired_sigma_check_is_the_records(n):
+    """The paired check of today's image σ_k: its row, from the new lines and the same seeds
+    of the published ones, with plain numpy; the new lines record the clipped estimator, the
+    old ones not, and both are the same observation (scene digest, seeds)."""
+    text = (CHECKS / f"type{n}" / "realizations.jsonl").read_text(encoding="utf-8")
+    new = [json.loads(x) for x in text.splitlines()]
+    published = {r["seed"]: r for r in _lines(n)}
+    old = [published[r["seed"]] for r in new]
+    assert {r["scene_sha256"] for r in new} == {r["scene_sha256"] for r in old}
+    assert all(r["procedure"]["image_noise_estimator"] == "clipped" for r in new)
+    assert all("image_noise_estimator" not in r["procedure"] for r in old)
+    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
+    sec = next(x for x in page.split("\n## ") if x.startswith("Types 3 and 4 with today's"))
+    line = next(x for x in sec.splitlines() if x.startswith(f"| {n} | "))
+    row = [c.strip() for c in line.strip("|").split("|")]
+    col = lambda rs, k: np.array([r[k] for r in rs], dtype=float)  # noqa: E731
+    seeds = [r["seed"] for r in new]
+    assert seeds == list(range(len(seeds)))
+    assert row[1] == f"0–{len(seeds) - 1}"
+    change = col(new, "image_flux_jy") / col(old, "image_flux_jy") - 1
+    assert row[2] == (f"{100 * change.mean():+.2f} ± "
+                      f"{100 * change.std(ddof=1) / np.sqrt(len(change)):.2f}")
+    uv_change = col(new, "uv_flux_jy") / col(old, "uv_flux_jy") - 1
+    assert row[3] == f"{100 * np.abs(uv_change).max():.2f}"
+
+    def ratio(rs, k):
+        return f"{col(rs, k).mean() / col(rs, 'uv_flux_jy').mean():.4f}"
+
+    assert row[4] == f"{ratio(old, 'image_flux_jy')} → {ratio(new, 'image_flux_jy')}"
+    assert row[5] == (f"{ratio(old, 'image_flux_subpixel_jy')} → "
+                      f"{ratio(new, 'image_flux_subpixel_jy')}")
+    sd = lambda a: f"{1e9 * a.std(ddof=1):.1f}"  # noqa: E731
+    assert row[6] == f"{sd(col(old, 'image_flux_jy'))} → {sd(col(new, 'image_flux_jy'))}"
+    diff = lambda rs: col(rs, "image_flux_jy") - col(rs, "uv_flux_jy")  # noqa: E731
+    assert row[7] == f"{sd(diff(old))} → {sd(diff(new))}"
+    assert row[8] == f"{col(new, 'seconds').mean():.0f}"

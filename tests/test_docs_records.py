@@ -22,23 +22,31 @@ RECORDS = DOCS / "records" / "flagged"
 TYPES = sorted(int(p.name[4:]) for p in RECORDS.glob("type*") if (p / "realizations.jsonl").exists())
 
 
-def _lines(n: int) -> list[dict]:
-    text = (RECORDS / f"type{n}" / "realizations.jsonl").read_text(encoding="utf-8")
+def _lines(n: int, records: Path = RECORDS) -> list[dict]:
+    text = (records / f"type{n}" / "realizations.jsonl").read_text(encoding="utf-8")
     return [json.loads(x) for x in text.splitlines()]
 
 
-def _section_row(n: int) -> list[str]:
-    """The row of type ``n`` in the first table of the page's flagged section holding it."""
+def _row(section: str, n: int) -> list[str] | None:
+    """The cells of type ``n``'s first row in the first of the page's sections whose title
+    starts with ``section`` that has one; None if none has."""
     page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
-    sections = page.split("\n## ")
-    for sec in sections:
-        if not sec.startswith("Full size with the simulator's flags"):
+    for sec in page.split("\n## "):
+        if not sec.startswith(section):
             continue
         # a row starts with the type; "| 10 | " inside a line is another type's R or value
         line = next((x for x in sec.splitlines() if x.startswith(f"| {n} | ")), None)
         if line is not None:
             return [c.strip() for c in line.strip("|").split("|")]
-    raise AssertionError(f"no flagged section of docs/reproduction.md has a row of type {n}")
+    return None
+
+
+def _section_row(n: int) -> list[str]:
+    """The row of type ``n`` in the first table of the page's flagged section holding it."""
+    row = _row("Full size with the simulator's flags", n)
+    if row is None:
+        raise AssertionError(f"no flagged section of docs/reproduction.md has a row of type {n}")
+    return row
 
 
 def test_records_exist():
@@ -75,19 +83,11 @@ def test_page_row_is_the_records(n):
     assert row[10] == f"{offset:+.1f}"
 
 
-def _noise_row(n: int) -> list[str] | None:
-    """Type ``n``'s row of the page's expected-noise table, None if the table has none."""
-    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
-    sec = next(x for x in page.split("\n## ") if x.startswith("Expected noise: the paper's"))
-    line = next((x for x in sec.splitlines() if x.startswith(f"| {n} | ")), None)
-    return None if line is None else [c.strip() for c in line.strip("|").split("|")]
-
-
 @pytest.mark.parametrize("n", TYPES)
 def test_expected_noise_table_is_the_records(n):
     """Thermal and map (eq. 9) expected noise and the scatters, as the lines say; every type
     with lines is in the table."""
-    row = _noise_row(n)
+    row = _row("Expected noise: the paper's", n)
     assert row is not None, f"type {n} has lines but no row in the expected-noise table"
     lines = _lines(n)
     per_jy = {"µJy": 1e6, "mJy": 1e3}[row[2]]
@@ -106,11 +106,8 @@ def test_summary_ratios_are_the_records(n):
     """The summary's ratios of each type, from the lines with plain numpy and Table 2."""
     from xstack.reproduce.paper import PAPER_TABLE2
 
-    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
-    sec = next(x for x in page.split("\n## ") if x.startswith("Summary: the full-size runs"))
-    line = next((x for x in sec.splitlines() if x.startswith(f"| {n} | ")), None)
-    assert line is not None, f"type {n} has lines but no row in the summary"
-    row = [c.strip() for c in line.strip("|").split("|")]
+    row = _row("Summary: the full-size runs", n)
+    assert row is not None, f"type {n} has lines but no row in the summary"
     lines = _lines(n)
     paper = PAPER_TABLE2[n]
     uv = np.array([r["uv_flux_jy"] for r in lines])
@@ -140,17 +137,14 @@ def test_paired_sigma_check_is_the_records(n):
     """The paired check of today's image σ_k: its row, from the new lines and the same seeds
     of the published ones, with plain numpy; the new lines record the clipped estimator, the
     old ones not, and both are the same observation (scene digest, seeds)."""
-    text = (CHECKS / f"type{n}" / "realizations.jsonl").read_text(encoding="utf-8")
-    new = [json.loads(x) for x in text.splitlines()]
+    new = _lines(n, CHECKS)
     published = {r["seed"]: r for r in _lines(n)}
     old = [published[r["seed"]] for r in new]
     assert {r["scene_sha256"] for r in new} == {r["scene_sha256"] for r in old}
     assert all(r["procedure"]["image_noise_estimator"] == "clipped" for r in new)
     assert all("image_noise_estimator" not in r["procedure"] for r in old)
-    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
-    sec = next(x for x in page.split("\n## ") if x.startswith("Types 3 and 4 with today's"))
-    line = next(x for x in sec.splitlines() if x.startswith(f"| {n} | "))
-    row = [c.strip() for c in line.strip("|").split("|")]
+    row = _row("Types 3 and 4 with today's", n)
+    assert row is not None, f"type {n} has check lines but no row in the paired check"
     col = lambda rs, k: np.array([r[k] for r in rs], dtype=float)  # noqa: E731
     seeds = [r["seed"] for r in new]
     assert seeds == list(range(len(seeds)))

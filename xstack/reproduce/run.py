@@ -202,14 +202,17 @@ def scene_digest(n: int, scale: float) -> str:
 
 
 def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
-                    keep_figures: bool = False, procedure: Procedure | None = None
-                    ) -> dict[str, Any]:
+                    keep_figures: bool = False, procedure: Procedure | None = None,
+                    scene: Any = None) -> dict[str, Any]:
     """One realisation of type ``n`` with ``seed``: the paper's chain; returns its record.
 
     Intermediate stores and images are written to a temporary directory inside ``workdir``
     that is removed on return. With ``keep_figures`` the uv-profile and the stacked stamp are
     kept in ``workdir`` as ``profile_seed{seed}.npz`` and ``stamp_seed{seed}.npz``.
-    ``procedure`` replaces the paper's (:data:`~xstack.reproduce.paper.PROCEDURES`).
+    ``procedure`` replaces the paper's (:data:`~xstack.reproduce.paper.PROCEDURES`);
+    ``scene`` (a :class:`~xstack.sim.scene.Scene`, already scaled) replaces the preset's, e.g.
+    to run the same chain on the type's sky without one of its ingredients (its noise, its
+    bright sources: ``benchmarks/diagnose_sky_effects.py``).
     """
     import xstack
     from xstack.imaging.clean import clean_data
@@ -219,7 +222,8 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
     workdir = Path(workdir)
     tmp = Path(tempfile.mkdtemp(prefix=f"seed{seed}-", dir=workdir))
     try:
-        scene = xstack.preset_scene(f"paper-{n}", scale=scale)
+        if scene is None:
+            scene = xstack.preset_scene(f"paper-{n}", scale=scale)
         sim = xstack.simulate(scene, tmp / "sim.zarr", seed=seed)
         targets = sim.catalogs["targets"]
         true_flux = float(np.mean(np.asarray(targets["flux"], dtype=float)))

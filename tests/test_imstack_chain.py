@@ -79,6 +79,7 @@ def test_microjansky_gaussians_imaged_stacked_and_fitted(tmp_path, capsys, subpi
     import json
 
     from xstack.cli import main
+    from xstack.fit.imfit import fit_image
 
     ds = make_partition(n_time=8, n_ant=12, n_chan=4, seed=3)
     ds["FLAG"][:] = False
@@ -104,11 +105,16 @@ def test_microjansky_gaussians_imaged_stacked_and_fitted(tmp_path, capsys, subpi
         res.write(tmp_path / f"g{k}.fits")
         res.write(tmp_path / f"g{k}.psf.fits", res.psf, kind="psf")
         stamp = tmp_path / f"stack{k}.fits"
-        stack_images(tmp_path / f"g{k}.fits", np.c_[ra, dec][k:k + 1], stamp_size=64,
-                     weighting="none", subpixel=None if subpixel == "none" else subpixel,
-                     out=stamp, primary_beam="none")
+        st = stack_images(tmp_path / f"g{k}.fits", np.c_[ra, dec][k:k + 1], stamp_size=64,
+                          weighting="none", subpixel=None if subpixel == "none" else subpixel,
+                          out=stamp, primary_beam="none")
         capsys.readouterr()
         assert main(["fit", str(stamp), "--model", "gaussian", "--json"]) == 0
         fit = json.loads(capsys.readouterr().out)
         assert fit["flux_jy"] == pytest.approx(flux, rel=1e-3)
         assert fit["fwhm_arcsec"] == pytest.approx(fwhm, rel=1e-3)
+        # in memory, as xstack reproduce fits: the PSF stamp's attrs carry the nearest-pixel
+        # smear (peak < 1) that the fit must keep, as the FITS card PSFSMEAR does
+        mem = fit_image(st.stacked.values, psf=st.psf_stamp, pixel_arcsec=cell)
+        assert mem.flux_jy == pytest.approx(fit["flux_jy"], rel=1e-9)
+        assert mem.extra["psf_normalized"] == (subpixel == "fourier")

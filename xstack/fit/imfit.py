@@ -93,6 +93,8 @@ def read_psf(psf: Any, with_flag: bool = False) -> Any:
             smeared = bool(hdu.header.get("PSFSMEAR", False))
             arr = np.squeeze(np.asarray(hdu.data, dtype=np.float64))
     else:
+        # an ImstackResult.psf_stamp says so in its attrs, as the FITS PSF extension does
+        smeared = bool(getattr(psf, "attrs", {}).get("psf_smeared", False))
         arr = np.asarray(psf, dtype=np.float64)
     return (arr, smeared) if with_flag else arr
 
@@ -304,9 +306,9 @@ def fit_image(stamp: Any, *, psf: Any = None, pixel_arcsec: float | tuple[float,
     sigma_jy
         Pixel noise rms (Jy/beam) if known; default: estimated from the residuals.
     normalize_psf
-        Divide the PSF by its peak. Default: yes, except for a PSF written by
-        ``xstack imstack`` with nearest-pixel smear (``PSFSMEAR = T``, peak < 1), which is used
-        as it is so that S is the true mean flux (see docs/imstack.md). The noise correlation
+        Divide the PSF by its peak. Default: yes, except for an imstack PSF with nearest-pixel
+        smear (``PSFSMEAR = T``, or ``psf_stamp.attrs["psf_smeared"]``; peak < 1), kept so
+        that S is the true mean flux (docs/imstack.md); a plain array is divided. The noise correlation
         always uses the PSF scaled to a peak of 1.
 
     Returns

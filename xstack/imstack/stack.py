@@ -882,8 +882,10 @@ def _assemble(plan: _Plan, m: _Measured, options: ImstackOptions) -> ImstackResu
                               attrs={"units": bunit})
     wsum_da = xr.DataArray(m.wsum, dims=("y", "x"), coords=grid,
                            name="weight_sum" if options.method == "mean" else "n_stamps")
+    # psf_smeared, as the FITS card PSFSMEAR: fit_image keeps such a PSF's peak (< 1)
     psf_da = None if m.psf_stack is None else xr.DataArray(
-        m.psf_stack, dims=("y", "x"), coords=grid, name="psf")
+        m.psf_stack, dims=("y", "x"), coords=grid, name="psf",
+        attrs={"psf_smeared": not options.subpixel})
     used = {**options.to_dict(), "n_images": len(infos), "mask_radius_arcsec": plan.radius}
     return ImstackResult(
         cube=cube, weights=weights, stacked=stacked_da, flux_jy=m.flux, flux_err_jy=m.flux_err,

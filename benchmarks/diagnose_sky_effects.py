@@ -21,10 +21,24 @@ realisations, the paper's 1.017).
 Run time ~3-4 min per variant and seed at full size on the 2-core machine; at scale 0.02
 (18 targets) ~25 s.
 
+``--confusion`` instead runs one variant of one seed with its intermediates kept (the
+residual store and map) and prints what the bright sources' CLEAN residuals put at the
+targets: each target's residual-map pixel minus its true flux (noiseless with
+``--variants targets+bright``: the residuals of the bright sources and the other targets
+only), binned by the distance to the nearest bright source above 100 µJy, and the image and
+uv stacks with and without weights and the uv cut.
+
+Measured 2026-12-07 (docs/reproduction.md, "What the image stack's deficit is made of"):
+type 7's targets alone (seed 0, noiseless) uv fit 2.959 µJy / 1.500″, image fit 2.969 µJy /
+1.499″ for 2.96 µJy / 1.5″; type 6's seeds 0-3 without the bright sources image - uv
+-0.007 µJy, with them -0.143 µJy.
+
 Usage::
 
     python benchmarks/diagnose_sky_effects.py --type 7 --seeds 0 1 [--variants ...]
                                               [--scale 1] [--workdir DIR] [--json]
+    python benchmarks/diagnose_sky_effects.py --type 6 --seeds 0 --variants targets+bright \
+                                              --confusion
 """
 
 from __future__ import annotations
@@ -68,6 +82,127 @@ COLUMNS = {
 }
 
 
+def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict[str, Any]:
+    """The residual map's value at each target minus its true flux, by distance to the
+    nearest bright source, and the stacks of the same residual (fluxes in Jy)."""
+    from astropy.coordinates import SkyCoord
+    from astropy.io import fits
+    from astropy.table import Table
+    from astropy.wcs import WCS
+
+    from xstack.imaging.clean import clean_data
+    from xstack.reproduce.paper import PROCEDURES
+
+    proc = PROCEDURES[n]
+    work.mkdir(parents=True, exist_ok=True)
+    if not (work / "residual.fits").exists():
+        sim = xstack.simulate(variant_scene(n, scale, variant), work / "sim.zarr", seed=seed)
+        img, cres = clean_data(sim.store, size=proc.size, cell_arcsec=proc.cell_arcsec,
+                             niter=100_000, threshold=rr.clean_threshold(proc, scale),
+                             algorithm="clark", epsilon=proc.epsilon)
+        img.write(work / "model.fits", cres.model, kind="model")
+        xstack.subtract(sim.store, work / "model.fits", work / "residual.zarr")
+        for name, cat in sim.catalogs.items():
+            cat.write(work / f"{name}.ecsv", overwrite=True)
+        rr.residual_images(work / "residual.zarr", proc, work)
+    targets, bright = Table.read(work / "targets.ecsv"), Table.read(work / "bright.ecsv")
+    with fits.open(work / "residual.fits") as hdul:
+        data = np.squeeze(hdul[0].data).astype(float)
+        wcs = WCS(hdul[0].header).celestial
+    x, y = wcs.world_to_pixel_values(np.asarray(targets["ra"], float),
+                                     np.asarray(targets["dec"], float))
+    ix, iy = np.round(x).astype(int), np.round(y).astype(int)
+    inside = (ix >= 0) & (iy >= 0) & (ix < data.shape[1]) & (iy < data.shape[0])
+    value = np.full(len(targets), np.nan)
+    value[inside] = data[iy[inside], ix[inside]]
+    d = value - np.asarray(targets["flux"], float)
+    good = np.isfinite(d)
+    strong = np.asarray(bright["flux"], float) > 1e-4
+    _, sep, _ = SkyCoord(targets["ra"], targets["dec"], unit="deg").match_to_catalog_sky(
+        SkyCoord(bright["ra"][strong], bright["dec"][strong], unit="deg"))
+    sep = sep.arcsec
+    bins = []
+    for lo, hi in ((0, 10), (10, 30), (30, 60), (60, 120), (120, np.inf)):
+        m = good & (sep >= lo) & (sep < hi)
+        bins.append({"from_arcsec": lo, "to_arcsec": hi, "n": int(m.sum()),
+                     "mean_jy": float(d[m].mean()) if m.any() else None,
+                     "median_jy": float(np.median(d[m])) if m.any() else None})
+    fin = np.isfinite(data)
+    # the same map at uniformly random positions of the targets' box: what a stack expects
+    # over realisations, unweighted and with 1/sigma_k^2 (sigma_k the clipped local noise of
+    # this map and a thermal noise of the type's map in quadrature, ~1/A corrected)
+    from xstack.uvstack.localnoise import measure_local_noise
+
+    rng = np.random.default_rng(2)
+    box = next(p for p in variant_scene(n, scale, variant).populations
+               if p.name == "targets").positions.size_arcsec
+    half = int(round(0.5 * min(box) / proc.cell_arcsec))
+    cy, cx = data.shape[0] // 2, data.shape[1] // 2
+    ry = rng.integers(cy - half, cy + half, 20000)
+    rx = rng.integers(cx - half, cx + half, 20000)
+    keep = np.isfinite(data[ry, rx])
+    ry, rx = ry[keep], rx[keep]
+    rv = data[ry, rx]
+    rra, rdec = wcs.pixel_to_world_values(rx, ry)
+    sigma = np.asarray(measure_local_noise(work / "residual.fits", np.c_[rra, rdec]).sigma,
+                       float)
+    with fits.open(work / "residual.pb.fits") as hdul:
+        beam = np.squeeze(hdul[0].data).astype(float)[ry, rx]
+    random = {"n": int(rv.size), "mean_jy": float(rv.mean()), "median_jy": float(np.median(rv)),
+              "fraction_above_10ujy": float(np.mean(rv > 1e-5)),
+              "mean_from_above_10ujy_jy": float(rv[rv > 1e-5].sum() / rv.size)}
+    for thermal in (0.0, proc.thermal_noise_jy):
+        w = 1.0 / (sigma**2 + (thermal / beam) ** 2)
+        ok = np.isfinite(w)
+        random[f"weighted_mean_thermal_{thermal * 1e6:g}ujy_jy"] = float(
+            np.sum(w[ok] * rv[ok]) / np.sum(w[ok]))
+    stacks = {}
+    for weighting in ("none", "sigma2"):
+        stacks[f"image sub-pixel, {weighting}"] = float(xstack.stack_images(
+            [work / "residual.fits"], targets, weighting=weighting, subpixel="fourier",
+            psf=[work / "residual.psf.fits"], plot=False).flux_jy)
+        for cut in (proc.uvmin_m, None):
+            label = f"> {cut:g} m" if cut else "all baselines"
+            stacks[f"uv {label}, {weighting}"] = float(
+                xstack.stack_uv(work / "residual.zarr", targets, weighting=weighting, uvmin=cut,
+                                noise_image=work / "residual.fits" if weighting == "sigma2"
+                                else None).flux_jy)
+    return {"type": n, "seed": seed, "variant": variant,
+            "true_flux_jy": float(np.mean(targets["flux"])),
+            "target_minus_true_mean_jy": float(d[good].mean()),
+            "target_minus_true_se_jy": float(d[good].std(ddof=1) / np.sqrt(good.sum())),
+            "target_minus_true_percentiles_jy": dict(zip(
+                ("1", "5", "25", "50", "75", "95", "99"),
+                np.percentile(d[good], [1, 5, 25, 50, 75, 95, 99]).tolist())),
+            "map_mean_jy_per_beam": float(data[fin].mean()),
+            "map_median_jy_per_beam": float(np.median(data[fin])),
+            "random_positions": random,
+            "by_distance_to_bright": bins, "stacks_jy": stacks}
+
+
+def print_confusion(c: dict[str, Any]) -> None:
+    """The :func:`confusion` dictionary as tables (µJy)."""
+    u = 1e6
+    print(f"type {c['type']} seed {c['seed']} {c['variant']}: true mean flux "
+          f"{c['true_flux_jy'] * u:.3f} µJy; residual map mean {c['map_mean_jy_per_beam'] * u:.3f}, "
+          f"median {c['map_median_jy_per_beam'] * u:.3f} µJy/beam")
+    print(f"target pixel - true flux: mean {c['target_minus_true_mean_jy'] * u:.3f} ± "
+          f"{c['target_minus_true_se_jy'] * u:.3f} µJy; percentiles "
+          + ", ".join(f"{k}%: {v * u:.2f}" for k, v in c["target_minus_true_percentiles_jy"].items()))
+    print(f"{'nearest bright > 100 µJy':>26s} {'n':>5s} {'mean':>8s} {'median':>8s}")
+    for b in c["by_distance_to_bright"]:
+        mean = "n/a" if b["mean_jy"] is None else f"{b['mean_jy'] * u:8.3f}"
+        med = "n/a" if b["median_jy"] is None else f"{b['median_jy'] * u:8.3f}"
+        print(f"{b['from_arcsec']:>11g}-{b['to_arcsec']:<8g} arcsec {b['n']:5d} {mean:>8s} {med:>8s}")
+    r = c["random_positions"]
+    print(f"{r['n']} random positions: mean {r['mean_jy'] * u:.3f}, median "
+          f"{r['median_jy'] * u:.3f} µJy; {100 * r['fraction_above_10ujy']:.2f} % above 10 µJy "
+          f"hold {r['mean_from_above_10ujy_jy'] * u:.3f} of the mean; weighted "
+          + ", ".join(f"{k}: {v * u:.3f}" for k, v in r.items() if k.startswith("weighted")))
+    for k, v in c["stacks_jy"].items():
+        print(f"{k:32s} {v * u:8.3f} µJy")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--type", type=int, default=7)
@@ -76,7 +211,14 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0)
     ap.add_argument("--workdir", type=Path, default=Path("diagnose-sky-effects"))
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--confusion", action="store_true",
+                    help="one seed and variant, intermediates kept: what is at the targets")
     a = ap.parse_args()
+    if a.confusion:
+        c = confusion(a.type, a.seeds[0], a.scale, a.variants[0],
+                      a.workdir / f"type{a.type}" / f"{a.variants[0]}-maps" / f"seed{a.seeds[0]}")
+        print(json.dumps(c)) if a.json else print_confusion(c)
+        return
     rows = []
     for seed in a.seeds:
         for variant in a.variants:
@@ -87,9 +229,11 @@ def main() -> None:
                 rec = json.loads(line.read_text())
             else:
                 t0 = time.perf_counter()
-                rec = rr.run_realization(a.type, seed, a.scale, work,
-                                         scene=variant_scene(a.type, a.scale, variant))
+                scene = variant_scene(a.type, a.scale, variant)
+                rec = rr.run_realization(a.type, seed, a.scale, work, scene=scene)
                 rec["seconds"] = time.perf_counter() - t0
+                rec.update(type=a.type, scale=a.scale, variant=variant,
+                           scene_sha256=scene.digest())
                 tmp = line.with_suffix(".tmp")
                 tmp.write_text(json.dumps(rec))
                 tmp.replace(line)

@@ -166,3 +166,53 @@ def test_paired_sigma_check_is_the_records(n):
     diff = lambda rs: col(rs, "image_flux_jy") - col(rs, "uv_flux_jy")  # noqa: E731
     assert row[7] == f"{sd(diff(old))} → {sd(diff(new))}"
     assert row[8] == f"{col(new, 'seconds').mean():.0f}"
+
+
+SKY = DOCS / "records" / "sky-effects"
+SKY_SECTION = "What the image stack's deficit is made of"
+
+
+def _sky(n: int, variant: str) -> list[dict]:
+    return sorted((json.loads(p.read_text(encoding="utf-8"))
+                   for p in (SKY / f"type{n}" / variant).glob("seed*.json")),
+                  key=lambda r: r["seed"])
+
+
+def test_sky_effects_tables_are_the_records():
+    """The ingredient runs' tables, from their lines and the published lines of the same
+    seeds, with plain numpy; the lines are of today's benchmark scenes (digest)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "diagnose_sky_effects", DOCS.parent / "benchmarks" / "diagnose_sky_effects.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    tn = _sky(6, "targets+noise")
+    assert tn and {r["scene_sha256"] for r in tn} == {
+        bench.variant_scene(6, 1.0, "targets+noise").digest()}
+    full = {r["seed"]: r for r in _lines(6)}
+    keys = ("uv_flux_jy", "image_flux_jy", "image_flux_subpixel_jy")
+    for r in tn:
+        row = _row(SKY_SECTION, r["seed"])
+        assert row is not None, f"seed {r['seed']} has a line but no row"
+        want = [f"{1e6 * r[k]:.3f}" for k in keys] + [f"{1e6 * full[r['seed']][k]:.3f}" for k in keys]
+        assert row[1:] == want
+    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
+    # the section's text with its lines joined (a number may wrap onto the next line)
+    sec = " ".join(page.split(f"## {SKY_SECTION}")[1].split("\n## ")[0].split())
+    col = lambda rs, k: 1e6 * np.array([x[k] for x in rs])  # noqa: E731
+    fl = [full[r["seed"]] for r in tn]
+    for rs, k in ((tn, "image_flux_jy"), (tn, "image_flux_subpixel_jy"), (fl, "image_flux_jy"),
+                  (fl, "image_flux_subpixel_jy")):
+        d = col(rs, k) - col(rs, "uv_flux_jy")
+        text = f"{d.mean():+.3f} ± {d.std(ddof=1) / np.sqrt(d.size):.3f}".replace("-", "−")
+        assert text.lstrip("+") in sec, text
+    (t7,) = _sky(7, "targets")
+    assert t7["scene_sha256"] == bench.variant_scene(7, 1.0, "targets").digest()
+    assert f"| uv (Gaussian beyond 5000 m) | {1e6 * t7['uv_flux_jy']:.3f} | {t7['uv_fwhm_arcsec']:.3f} |" in sec
+    assert (f"| image (PSF-convolved Gaussian) | {1e6 * t7['image_flux_jy']:.3f} | "
+            f"{t7['image_fwhm_arcsec']:.3f} |") in sec
+    conf = json.loads((SKY / "type6" / "confusion-targets+bright-seed0.json").read_text())
+    assert (f"−{-1e6 * conf['target_minus_true_mean_jy']:.3f} ± "
+            f"{1e6 * conf['target_minus_true_se_jy']:.3f} µJy") in sec
+    assert f"+{1e6 * conf['random_positions']['mean_jy']:.3f} µJy" in sec

@@ -209,7 +209,8 @@ def test_sky_effects_tables_are_the_records():
         assert text.lstrip("+") in sec, text
     (t7,) = _sky(7, "targets")
     assert t7["scene_sha256"] == bench.variant_scene(7, 1.0, "targets").digest()
-    assert f"| uv (Gaussian beyond 5000 m) | {1e6 * t7['uv_flux_jy']:.3f} | {t7['uv_fwhm_arcsec']:.3f} |" in sec
+    assert (f"| uv (Gaussian beyond 5000 m) | {1e6 * t7['uv_flux_jy']:.3f} | "
+            f"{t7['uv_fwhm_arcsec']:.3f} |") in sec
     assert (f"| image (PSF-convolved Gaussian) | {1e6 * t7['image_flux_jy']:.3f} | "
             f"{t7['image_fwhm_arcsec']:.3f} |") in sec
     conf = json.loads((SKY / "type6" / "confusion-targets+bright-seed0.json").read_text())

@@ -207,12 +207,12 @@ def test_sky_effects_tables_are_the_records():
         d = col(rs, k) - col(rs, "uv_flux_jy")
         text = f"{d.mean():+.3f} ± {d.std(ddof=1) / np.sqrt(d.size):.3f}".replace("-", "−")
         assert text.lstrip("+") in sec, text
-    (t7,) = _sky(7, "targets")
-    assert t7["scene_sha256"] == bench.variant_scene(7, 1.0, "targets").digest()
-    assert (f"| uv (Gaussian beyond 5000 m) | {1e6 * t7['uv_flux_jy']:.3f} | "
-            f"{t7['uv_fwhm_arcsec']:.3f} |") in sec
-    assert (f"| image (PSF-convolved Gaussian) | {1e6 * t7['image_flux_jy']:.3f} | "
-            f"{t7['image_fwhm_arcsec']:.3f} |") in sec
+    (t7,), (t7b,) = _sky(7, "targets"), _sky(7, "targets+bright")
+    for r, v in ((t7, "targets"), (t7b, "targets+bright")):
+        assert r["scene_sha256"] == bench.variant_scene(7, 1.0, v).digest()
+    for label, dom in (("uv (Gaussian beyond 5000 m)", "uv"), ("image (PSF-convolved Gaussian)", "image")):
+        cells = [f"{1e6 * r[f'{dom}_flux_jy']:.3f} | {r[f'{dom}_fwhm_arcsec']:.3f}" for r in (t7, t7b)]
+        assert f"| {label} | {cells[0]} | {cells[1]} |" in sec
     conf = json.loads((SKY / "type6" / "confusion-targets+bright-seed0.json").read_text())
     assert (f"−{-1e6 * conf['target_minus_true_mean_jy']:.3f} ± "
             f"{1e6 * conf['target_minus_true_se_jy']:.3f} µJy") in sec

@@ -42,7 +42,6 @@ import numpy as np
 from astropy.table import Table
 
 import xstack
-from xstack.imaging.clean import clean_data
 from xstack.imstack.kernels import NOISE_ESTIMATORS as ESTIMATORS
 from xstack.reproduce import run as rr
 from xstack.reproduce.paper import PROCEDURES
@@ -59,11 +58,7 @@ def prepare(seed: int, work: Path) -> tuple[Path, Path, Path, Table]:
     if not (work / "residual.zarr").exists():
         scene = xstack.preset_scene(f"paper-{TYPE}", scale=1)
         sim = xstack.simulate(scene, work / "sim.zarr", seed=seed)
-        img, cres = clean_data(sim.store, size=proc.size, cell_arcsec=proc.cell_arcsec,
-                               niter=100_000, threshold=rr.clean_threshold(proc, 1),
-                               algorithm="clark", epsilon=proc.epsilon)
-        img.write(work / "model.fits", cres.model, kind="model")
-        xstack.subtract(sim.store, work / "model.fits", work / "residual.zarr")
+        rr.clean_subtract(sim.store, proc, rr.clean_threshold(proc, 1), work)
         sim.catalogs["targets"].write(work / "targets.ecsv", overwrite=True)
         rr.residual_images(work / "residual.zarr", proc, work)
     return (work / "residual.zarr", work / "residual.fits", work / "residual.psf.fits",

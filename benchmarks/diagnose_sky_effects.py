@@ -90,18 +90,14 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict
     from astropy.table import Table
     from astropy.wcs import WCS
 
-    from xstack.imaging.clean import clean_data
     from xstack.reproduce.paper import PROCEDURES
 
     proc = PROCEDURES[n]
+    scene = variant_scene(n, scale, variant)
     work.mkdir(parents=True, exist_ok=True)
     if not (work / "residual.fits").exists():
-        sim = xstack.simulate(variant_scene(n, scale, variant), work / "sim.zarr", seed=seed)
-        img, cres = clean_data(sim.store, size=proc.size, cell_arcsec=proc.cell_arcsec,
-                             niter=100_000, threshold=rr.clean_threshold(proc, scale),
-                             algorithm="clark", epsilon=proc.epsilon)
-        img.write(work / "model.fits", cres.model, kind="model")
-        xstack.subtract(sim.store, work / "model.fits", work / "residual.zarr")
+        sim = xstack.simulate(scene, work / "sim.zarr", seed=seed)
+        rr.clean_subtract(sim.store, proc, rr.clean_threshold(proc, scale), work)
         for name, cat in sim.catalogs.items():
             cat.write(work / f"{name}.ecsv", overwrite=True)
         rr.residual_images(work / "residual.zarr", proc, work)
@@ -134,8 +130,7 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict
     from xstack.uvstack.localnoise import measure_local_noise
 
     rng = np.random.default_rng(2)
-    box = next(p for p in variant_scene(n, scale, variant).populations
-               if p.name == "targets").positions.size_arcsec
+    box = next(p for p in scene.populations if p.name == "targets").positions.size_arcsec
     half = int(round(0.5 * min(box) / proc.cell_arcsec))
     cy, cx = data.shape[0] // 2, data.shape[1] // 2
     ry = rng.integers(cy - half, cy + half, 20000)

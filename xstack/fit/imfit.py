@@ -348,7 +348,7 @@ def _solve(inputs: _Inputs, options: ImageFitOptions) -> tuple[_Plan, _Measured]
         _, a_hat, _ = plan.unpack(measured.p)
         outside = _uncovered(inputs, float(np.sqrt(max(a_hat, 0.0))))
         if (plan.use & outside).any() and (plan.use & ~outside).sum() > 4 * options.n_parameters:
-            plan = _plan(inputs, options, exclude=outside)
+            plan = _plan(inputs, options, exclude=outside, conv=plan.conv)
             measured = _compute(plan, options)
     return plan, measured
 
@@ -414,13 +414,15 @@ def _load(stamp: Any, psf: Any, options: ImageFitOptions) -> _Inputs:
                    pb_convention=pb_convention)
 
 
-def _plan(inputs: _Inputs, options: ImageFitOptions, exclude: np.ndarray | None = None
-          ) -> _Plan:
-    """The pixels to fit (less ``exclude``), the PSF convolver, the parameter scales and the
-    start values (a linear fit of the point model S PSF + c, size 0)."""
+def _plan(inputs: _Inputs, options: ImageFitOptions, exclude: np.ndarray | None = None,
+          conv: PsfConvolver | None = None) -> _Plan:
+    """The pixels to fit (less ``exclude``), the PSF convolver (``conv``, made if not given),
+    the parameter scales and the start values (a linear fit of the point model S PSF + c,
+    size 0)."""
     img, pix, center = inputs.img, inputs.pix, inputs.center
     ny, nx = img.shape
-    conv = PsfConvolver(inputs.psf, img.shape, center, pix, normalize=inputs.normalize)
+    if conv is None:
+        conv = PsfConvolver(inputs.psf, img.shape, center, pix, normalize=inputs.normalize)
     yy, xx = np.mgrid[0:ny, 0:nx]
     r = np.hypot((yy - center[0]) * pix[1], (xx - center[1]) * pix[0])
     use = np.isfinite(img)

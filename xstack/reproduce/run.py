@@ -215,7 +215,6 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
     bright sources: ``benchmarks/diagnose_sky_effects.py``).
     """
     import xstack
-    from xstack.imaging.clean import clean_data
 
     t0 = time.perf_counter()
     proc = procedure or PROCEDURES[n]
@@ -228,19 +227,11 @@ def run_realization(n: int, seed: int, scale: float, workdir: str | os.PathLike,
         targets = sim.catalogs["targets"]
         true_flux = float(np.mean(np.asarray(targets["flux"], dtype=float)))
         threshold = clean_threshold(proc, scale)
-        residual: Any = tmp / "residual.zarr"
+        residual: Any
         if proc.mosaic:
             residual, clean_stats = clean_subtract_mosaic(sim.store, proc, threshold, tmp)
         else:
-            # CLEAN the bright sources (Clark minor cycles: Hogbom's O(npix) per component is
-            # too slow on the 4000 x 4000 images of the wide-field types)
-            img, cres = clean_data(sim.store, size=proc.size, cell_arcsec=proc.cell_arcsec,
-                                   niter=100_000, threshold=threshold, algorithm="clark",
-                                   epsilon=proc.epsilon)
-            img.write(tmp / "model.fits", cres.model, kind="model")
-            xstack.subtract(sim.store, tmp / "model.fits", residual)
-            clean_stats = {"clean_components": cres.n_components,
-                           "clean_peak_residual_jy": cres.peak_residual}
+            residual, clean_stats = clean_subtract(sim.store, proc, threshold, tmp)
         uvmin = proc.uvmin_m
         # the residual map(s): image-stacked, and the local noise sigma_k of both stacks' weights
         maps = residual_images(residual, proc, tmp)
@@ -371,6 +362,26 @@ def _pointing_names(store: Any) -> list[list[str]]:
     from xstack.imaging.image import group_pointings
 
     return [[name for name, _ in members] for _, members in group_pointings(partitions(store))]
+
+
+def clean_subtract(store: Any, proc: Procedure, threshold: float, tmp: Path
+                   ) -> tuple[Path, dict[str, Any]]:
+    """CLEAN one pointing's bright sources to ``threshold`` (Jy/beam) and subtract the model
+    from its visibilities: ``tmp/model.fits`` and the residual store ``tmp/residual.zarr``.
+
+    Returns the residual store's path and ``clean_components``, ``clean_peak_residual_jy``.
+    Clark minor cycles: Hogbom's O(npix) per component is too slow on the 4000 x 4000 images
+    of the wide-field types.
+    """
+    import xstack
+    from xstack.imaging.clean import clean_data
+
+    img, cres = clean_data(store, size=proc.size, cell_arcsec=proc.cell_arcsec, niter=100_000,
+                           threshold=threshold, algorithm="clark", epsilon=proc.epsilon)
+    img.write(tmp / "model.fits", cres.model, kind="model")
+    xstack.subtract(store, tmp / "model.fits", tmp / "residual.zarr")
+    return tmp / "residual.zarr", {"clean_components": cres.n_components,
+                                   "clean_peak_residual_jy": cres.peak_residual}
 
 
 def clean_subtract_mosaic(store: Path, proc: Procedure, threshold: float, tmp: Path

@@ -58,9 +58,13 @@ from xstack.reproduce import run as rr
 VARIANTS = ("targets", "targets+noise", "targets+bright", "full")
 
 
-def variant_scene(n: int, scale: float, variant: str) -> Any:
-    """Type ``n``'s preset scene at ``scale`` with the ingredients ``variant`` leaves out."""
+def variant_scene(n: int, scale: float, variant: str, integration: float | None = None) -> Any:
+    """Type ``n``'s preset scene at ``scale`` with the ingredients ``variant`` leaves out
+    (and, if ``integration`` is given, integrations of that many seconds)."""
     scene = xstack.preset_scene(f"paper-{n}", scale=scale)
+    if integration is not None:
+        scene = dataclasses.replace(scene, observation=dataclasses.replace(
+            scene.observation, integration=float(integration)))
     if variant == "full":
         return scene
     keep_bright = "bright" in variant
@@ -82,9 +86,57 @@ COLUMNS = {
 }
 
 
-def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict[str, Any]:
+def casa_clean_subtract(store: Path, proc: Any, threshold: float, work: Path,
+                        deconvolver: str = "clark", wprojplanes: int = 128,
+                        timeout: float = 4 * 3600) -> dict[str, Any]:
+    """CASA's ``tclean`` in place of :func:`xstack.reproduce.run.clean_subtract`: the store
+    exported to an MS, CLEANed by CASA (w-projection, natural weighting, the procedure's
+    size, cell and ``threshold``, niter 100 000, gain 0.1) in its own process, and CASA's
+    model subtracted from the same store with :func:`xstack.subtract` into
+    ``work/residual.zarr``. Everything after (the residual map, the stacks) is xstack's, so
+    two runs differ by the CLEAN model alone. Needs the ``casa`` extra."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import bench_clean_casa as bcc
+
+    ms = xstack.export_ms(store, work / "sim.ms")
+    casa = bcc.Casa(work)
+    prefix = casa.work / f"wproject_{deconvolver}"
+    opts = {"imsize": [proc.size, proc.size], "cell": f"{proc.cell_arcsec}arcsec",
+            "threshold": f"{threshold}Jy", "gridder": "wproject", "wprojplanes": wprojplanes,
+            "deconvolver": deconvolver}
+    info = bcc.run_child(bcc.CASA_CLEAN, [ms, prefix, json.dumps(opts)], casa.env, casa.work,
+                         timeout)
+    model, note = bcc.subtract_ready(Path(str(prefix) + ".model.fits"),
+                                     work / "casa_model.xstack.fits")
+    xstack.subtract(store, model, work / "residual.zarr")
+    return {"clean": f"CASA tclean wproject ({wprojplanes} planes) {deconvolver}",
+            "clean_seconds": info["seconds"], "clean_peak_rss_mb": info["peak_rss_mb"],
+            "clean_iterations": info["iterations"], "clean_major_cycles": info["major_cycles"],
+            "clean_stopcode": info["stopcode"], "model_note": note, "model": str(model)}
+
+
+def xstack_clean_subtract(store: Path, proc: Any, threshold: float, work: Path) -> dict[str, Any]:
+    """:func:`xstack.reproduce.run.clean_subtract`, timed, in the same terms as
+    :func:`casa_clean_subtract`."""
+    t0 = time.perf_counter()
+    _, stats = rr.clean_subtract(store, proc, threshold, work)
+    seconds = time.perf_counter() - t0  # the subtraction included (CASA's is not)
+    return {"clean": "xstack clean_data clark", "clean_seconds_with_subtract": seconds,
+            "clean_iterations": int(stats["clean_components"]),
+            "model": str(work / "model.fits")}
+
+
+def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: str = "xstack",
+              integration: float | None = None, deconvolver: str = "clark",
+              wprojplanes: int = 128) -> dict[str, Any]:
     """The residual map's value at each target minus its true flux, by distance to the
-    nearest bright source, and the stacks of the same residual (fluxes in Jy)."""
+    nearest bright source, and the stacks of the same residual (fluxes in Jy).
+
+    ``clean="casa"`` CLEANs with CASA's ``tclean`` instead of xstack's
+    (:func:`casa_clean_subtract`); ``integration`` (s) replaces the preset's integration
+    time, which makes a noiseless data set small enough for CASA's gridder."""
     from astropy.coordinates import SkyCoord
     from astropy.io import fits
     from astropy.table import Table
@@ -93,14 +145,22 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict
     from xstack.reproduce.paper import PROCEDURES
 
     proc = PROCEDURES[n]
-    scene = variant_scene(n, scale, variant)
+    scene = variant_scene(n, scale, variant, integration)
     work.mkdir(parents=True, exist_ok=True)
+    made = work / "clean.json"
     if not (work / "residual.fits").exists():
         sim = xstack.simulate(scene, work / "sim.zarr", seed=seed)
-        rr.clean_subtract(sim.store, proc, rr.clean_threshold(proc, scale), work)
+        threshold = rr.clean_threshold(proc, scale)
+        if clean == "casa":
+            info = casa_clean_subtract(sim.store, proc, threshold, work, deconvolver, wprojplanes)
+        else:
+            info = xstack_clean_subtract(sim.store, proc, threshold, work)
         for name, cat in sim.catalogs.items():
             cat.write(work / f"{name}.ecsv", overwrite=True)
         rr.residual_images(work / "residual.zarr", proc, work)
+        made.write_text(json.dumps(info))
+    info = json.loads(made.read_text()) if made.exists() else {"clean": "xstack clean_data clark"}
+    info.update(_model_sums(Path(info.get("model", work / "model.fits")), work))
     targets, bright = Table.read(work / "targets.ecsv"), Table.read(work / "bright.ecsv")
     with fits.open(work / "residual.fits") as hdul:
         data = np.squeeze(hdul[0].data).astype(float)
@@ -162,7 +222,17 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict
                 xstack.stack_uv(work / "residual.zarr", targets, weighting=weighting, uvmin=cut,
                                 noise_image=work / "residual.fits" if weighting == "sigma2"
                                 else None).flux_jy)
-    return {"type": n, "seed": seed, "variant": variant,
+    # what the model left of the bright sources in the data (no imager): the residual
+    # uv-stacked at their true positions, pb weights, all baselines and beyond the uv cut
+    strong_cat = bright[strong]
+    left = {}
+    for cut in (None, proc.uvmin_m):
+        label = f"> {cut:g} m" if cut else "all baselines"
+        left[label] = float(xstack.stack_uv(work / "residual.zarr", strong_cat, weighting="pb",
+                                            uvmin=cut).flux_jy)
+    return {"type": n, "seed": seed, "variant": variant, "integration_s": integration,
+            "scene_sha256": scene.digest(), **info,
+            "bright_left_mean_jy": left, "bright_true_mean_jy": float(np.mean(strong_cat["flux"])),
             "true_flux_jy": float(np.mean(targets["flux"])),
             "target_minus_true_mean_jy": float(d[good].mean()),
             "target_minus_true_se_jy": float(d[good].std(ddof=1) / np.sqrt(good.sum())),
@@ -175,9 +245,26 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path) -> dict
             "by_distance_to_bright": bins, "stacks_jy": stacks}
 
 
+def _model_sums(model: Path, work: Path) -> dict[str, Any]:
+    """The CLEAN model's total flux (Jy) and number of nonzero pixels."""
+    from astropy.io import fits
+
+    if not model.exists():
+        return {}
+    with fits.open(model) as hdul:
+        m = np.nan_to_num(np.asarray(hdul[0].data, dtype=float))
+    return {"model_total_jy": float(m.sum()), "model_components": int(np.count_nonzero(m))}
+
+
 def print_confusion(c: dict[str, Any]) -> None:
     """The :func:`confusion` dictionary as tables (µJy)."""
     u = 1e6
+    print(f"CLEAN: {c.get('clean', 'xstack clean_data clark')}; integration "
+          f"{c.get('integration_s') or 'as the preset'} s; model {c.get('model_total_jy', 0) * 1e3:.4f} mJy "
+          f"in {c.get('model_components', 'n/a')} pixels")
+    for k, v in c.get("bright_left_mean_jy", {}).items():
+        print(f"bright sources > 100 µJy left in the data ({k}): {v * u:.3f} µJy of "
+              f"{c['bright_true_mean_jy'] * u:.1f} µJy on average")
     print(f"type {c['type']} seed {c['seed']} {c['variant']}: true mean flux "
           f"{c['true_flux_jy'] * u:.3f} µJy; residual map mean {c['map_mean_jy_per_beam'] * u:.3f}, "
           f"median {c['map_median_jy_per_beam'] * u:.3f} µJy/beam")
@@ -208,10 +295,24 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--confusion", action="store_true",
                     help="one seed and variant, intermediates kept: what is at the targets")
+    ap.add_argument("--clean", choices=("xstack", "casa"), default="xstack",
+                    help="with --confusion: whose CLEAN removes the bright sources (casa: "
+                         "tclean, w-projection; needs the casa extra)")
+    ap.add_argument("--deconvolver", default="clark", help="with --clean casa: tclean's")
+    ap.add_argument("--wprojplanes", type=int, default=128, help="with --clean casa: tclean's")
+    ap.add_argument("--integration", type=float,
+                    help="with --confusion: integration time (s) in place of the preset's")
     a = ap.parse_args()
     if a.confusion:
+        tag = f"{a.variants[0]}-maps"
+        if a.clean == "casa":
+            tag += f"-casa-{a.deconvolver}"
+        if a.integration:
+            tag += f"-int{a.integration:g}"
         c = confusion(a.type, a.seeds[0], a.scale, a.variants[0],
-                      a.workdir / f"type{a.type}" / f"{a.variants[0]}-maps" / f"seed{a.seeds[0]}")
+                      a.workdir / f"type{a.type}" / tag / f"seed{a.seeds[0]}", clean=a.clean,
+                      integration=a.integration, deconvolver=a.deconvolver,
+                      wprojplanes=a.wprojplanes)
         print(json.dumps(c)) if a.json else print_confusion(c)
         return
     rows = []

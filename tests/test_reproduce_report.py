@@ -227,6 +227,17 @@ def test_mask_radius_from_an_analytic_psf():
     assert math.isnan(rp.psf_mask_radius(np.zeros(0), 0.25))
 
 
+def test_size_histogram_has_no_bin_below_zero():
+    # a fit that collapsed to a point (FWHM 0) used to open a bin at -0.2"; every value still
+    # falls inside the edges, and without the floor the edges pad below the smallest value
+    sizes = [np.array([0.0, 1.2, 1.5, 2.1]), np.array([1.5])]
+    edges = rp._bins(sizes, floor=0.0)
+    assert edges[0] == 0.0 and edges[-1] > 2.1
+    counts, _ = np.histogram(np.concatenate(sizes), bins=edges)
+    assert counts.sum() == 5
+    assert rp._bins(sizes)[0] < 0.0
+
+
 def test_no_realisations_is_an_error(tmp_path):
     with pytest.raises(NoDataError, match="no realisations"):
         rp.write_report(tmp_path / "missing")

@@ -290,7 +290,9 @@ def _gauss_counts(ax: Any, mean: float, std: float, count: int, width: float, lo
             / (std * math.sqrt(2 * math.pi)), **style)
 
 
-def _bins(values: Sequence[np.ndarray]) -> np.ndarray:
+def _bins(values: Sequence[np.ndarray], floor: float | None = None) -> np.ndarray:
+    """Histogram edges padding the values' range by 15 % on each side, not below ``floor``
+    (a fitted size is never negative: its histogram has no bin below 0)."""
     allv = np.concatenate([v for v in values if v.size]) if any(v.size for v in values) \
         else np.zeros(1)
     lo, hi = float(allv.min()), float(allv.max())
@@ -298,7 +300,8 @@ def _bins(values: Sequence[np.ndarray]) -> np.ndarray:
         lo, hi = lo - 0.5 * abs(lo or 1.0), hi + 0.5 * abs(hi or 1.0)
     nb = int(np.clip(round(math.sqrt(allv.size)) + 2, 5, 25))
     pad = 0.15 * (hi - lo)
-    return np.linspace(lo - pad, hi + pad, nb + 1)
+    start = lo - pad if floor is None else max(lo - pad, floor)
+    return np.linspace(start, hi + pad, nb + 1)
 
 
 def fig_flux(n: int, records: Sequence[dict[str, Any]], path: Path) -> Path:
@@ -501,7 +504,8 @@ def fig_sizes(records: Sequence[dict[str, Any]], path: Path) -> Path:
     """Fig 8: type 7's fitted FWHM of every realisation, uv against image."""
     data = {"uv": _values(records, "uv_fwhm_arcsec"),
             "image": _values(records, "image_fwhm_arcsec")}
-    edges = _bins(list(data.values()) + [np.array([PAPER_TYPE7_SIZES["true_fwhm_arcsec"]])])
+    edges = _bins(list(data.values()) + [np.array([PAPER_TYPE7_SIZES["true_fwhm_arcsec"]])],
+                  floor=0.0)
     fig = _figure((6.0, 4.2))
     ax = fig.subplots()
     for (dom, v), color in zip(data.items(), ("tab:blue", "tab:orange")):

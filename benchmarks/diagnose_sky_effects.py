@@ -160,7 +160,7 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: 
         rr.residual_images(work / "residual.zarr", proc, work)
         made.write_text(json.dumps(info))
     info = json.loads(made.read_text()) if made.exists() else {"clean": "xstack clean_data clark"}
-    info.update(_model_sums(Path(info.get("model", work / "model.fits")), work))
+    info.update(_model_sums(Path(info.get("model", work / "model.fits"))))
     targets, bright = Table.read(work / "targets.ecsv"), Table.read(work / "bright.ecsv")
     with fits.open(work / "residual.fits") as hdul:
         data = np.squeeze(hdul[0].data).astype(float)
@@ -245,7 +245,7 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: 
             "by_distance_to_bright": bins, "stacks_jy": stacks}
 
 
-def _model_sums(model: Path, work: Path) -> dict[str, Any]:
+def _model_sums(model: Path) -> dict[str, Any]:
     """The CLEAN model's total flux (Jy) and number of nonzero pixels."""
     from astropy.io import fits
 

@@ -28,7 +28,15 @@ targets: each target's residual-map pixel minus its true flux (noiseless with
 only), binned by the distance to the nearest bright source above 100 µJy, and the image and
 uv stacks with and without weights and the uv cut.
 
-Measured 2026-12-07 (docs/reproduction.md, "What the image stack's deficit is made of"):
+``--clean casa`` (with ``--confusion``) CLEANs with CASA's ``tclean`` instead (w-projection,
+``--deconvolver``, ``--wprojplanes``; the ``casa`` extra), the model subtracted and everything
+after it done by xstack, so that two runs differ by the CLEAN model alone; ``--integration``
+replaces the preset's integration time (noiseless type 6 at 60 s: CASA's Clark CLEAN 586 s
+and 5.9 GB on the 2-core machine).
+
+Measured 2026-12-07 (docs/reproduction.md, "What the image stack's deficit is made of" and
+"CASA's CLEAN in place of xstack's"): CASA's Clark and Högbom CLEANs leave type 6's image
+stack at 0.815 of the uv stack, xstack's at 0.823, multiscale at 0.881;
 type 7's targets alone (seed 0, noiseless) uv fit 2.959 µJy / 1.500″, image fit 2.969 µJy /
 1.499″ for 2.96 µJy / 1.5″; type 6's seeds 0-3 without the bright sources image - uv
 -0.007 µJy, with them -0.143 µJy.
@@ -106,12 +114,17 @@ def casa_clean_subtract(store: Path, proc: Any, threshold: float, work: Path,
     opts = {"imsize": [proc.size, proc.size], "cell": f"{proc.cell_arcsec}arcsec",
             "threshold": f"{threshold}Jy", "gridder": "wproject", "wprojplanes": wprojplanes,
             "deconvolver": deconvolver}
+    if deconvolver == "multiscale":
+        # point components, and Gaussians of 3" and 10" (the bright sources' 0.5-5" FWHM
+        # convolved with the ~1.4" beam)
+        opts["scales"] = [0, 6, 20]
     info = bcc.run_child(bcc.CASA_CLEAN, [ms, prefix, json.dumps(opts)], casa.env, casa.work,
                          timeout)
     model, note = bcc.subtract_ready(Path(str(prefix) + ".model.fits"),
                                      work / "casa_model.xstack.fits")
     xstack.subtract(store, model, work / "residual.zarr")
-    return {"clean": f"CASA tclean wproject ({wprojplanes} planes) {deconvolver}",
+    scales = f" (scales {opts['scales']} pixels)" if "scales" in opts else ""
+    return {"clean": f"CASA tclean wproject ({wprojplanes} planes) {deconvolver}{scales}",
             "clean_seconds": info["seconds"], "clean_peak_rss_mb": info["peak_rss_mb"],
             "clean_iterations": info["iterations"], "clean_major_cycles": info["major_cycles"],
             "clean_stopcode": info["stopcode"], "model_note": note, "model": str(model)}

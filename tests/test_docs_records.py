@@ -217,3 +217,35 @@ def test_sky_effects_tables_are_the_records():
     assert (f"−{-1e6 * conf['target_minus_true_mean_jy']:.3f} ± "
             f"{1e6 * conf['target_minus_true_se_jy']:.3f} µJy") in sec
     assert f"+{1e6 * conf['random_positions']['mean_jy']:.3f} µJy" in sec
+
+
+CASA_SECTION = "CASA's CLEAN in place of xstack's: type 6 without noise (2026-12-07)"
+CASA_ROWS = {"x6_int60": "xstack, Clark", "c6_int60_clark": "CASA tclean, Clark",
+             "c6_int60_hogbom": "CASA tclean, Högbom",
+             "c6_int60_ms": "CASA tclean, multiscale (0, 3″, 10″)"}
+
+
+def test_casa_clean_table_is_the_records():
+    """The CASA-against-xstack CLEAN table, row by row from its records (µJy, mJy), and the
+    records are of one scene: today's noiseless type-6 variant with 60 s integrations."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "diagnose_sky_effects", DOCS.parent / "benchmarks" / "diagnose_sky_effects.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    digest = bench.variant_scene(6, 1.0, "targets+bright", integration=60.0).digest()
+    page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
+    sec = page.split(f"## {CASA_SECTION}")[1].split("\n## ")[0]
+    for stem, label in CASA_ROWS.items():
+        r = json.loads((SKY / "type6" / "casa" / f"{stem}.json").read_text(encoding="utf-8"))
+        assert r["scene_sha256"] == digest and r["integration_s"] == 60.0
+        assert r["clean"].startswith("CASA" if stem.startswith("c6") else "xstack")
+        st = r["stacks_jy"]
+        img, uv_all, uv_cut = (1e6 * st[k] for k in (
+            "image sub-pixel, sigma2", "uv all baselines, sigma2", "uv > 5000 m, sigma2"))
+        cells = [label, str(r["clean_iterations"]), f"{1e3 * r['model_total_jy']:.2f}",
+                 f"{1e6 * r['bright_left_mean_jy']['all baselines']:.1f}",
+                 f"{1e6 * r['target_minus_true_mean_jy']:+.3f}".replace("-", "−"),
+                 f"{img:.3f}", f"{uv_all:.3f}", f"{uv_cut:.3f}", f"{img / uv_cut:.3f}"]
+        assert "| " + " | ".join(cells) + " |" in sec, label

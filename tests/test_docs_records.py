@@ -222,7 +222,8 @@ def test_sky_effects_tables_are_the_records():
 CASA_SECTION = "CASA's CLEAN in place of xstack's: type 6 without noise (2026-12-07)"
 CASA_ROWS = {"x6_int60": "xstack, Clark", "c6_int60_clark": "CASA tclean, Clark",
              "c6_int60_hogbom": "CASA tclean, Högbom",
-             "c6_int60_ms": "CASA tclean, multiscale (0, 3″, 10″)"}
+             "c6_int60_ms": "CASA tclean, multiscale (0, 3″, 10″)",
+             "x6_int60_s1": "xstack, Clark", "c6_int60_clark_s1": "CASA tclean, Clark"}
 
 
 def test_casa_clean_table_is_the_records():
@@ -235,6 +236,7 @@ def test_casa_clean_table_is_the_records():
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     digest = bench.variant_scene(6, 1.0, "targets+bright", integration=60.0).digest()
+    assert len(list((SKY / "type6" / "casa").glob("*.json"))) == len(CASA_ROWS)
     page = (DOCS / "reproduction.md").read_text(encoding="utf-8")
     sec = page.split(f"## {CASA_SECTION}")[1].split("\n## ")[0]
     for stem, label in CASA_ROWS.items():
@@ -244,7 +246,8 @@ def test_casa_clean_table_is_the_records():
         st = r["stacks_jy"]
         img, uv_all, uv_cut = (1e6 * st[k] for k in (
             "image sub-pixel, sigma2", "uv all baselines, sigma2", "uv > 5000 m, sigma2"))
-        cells = [label, str(r["clean_iterations"]), f"{1e3 * r['model_total_jy']:.2f}",
+        assert r["seed"] == (1 if stem.endswith("_s1") else 0)
+        cells = [str(r["seed"]), label, str(r["clean_iterations"]), f"{1e3 * r['model_total_jy']:.2f}",
                  f"{1e6 * r['bright_left_mean_jy']['all baselines']:.1f}",
                  f"{1e6 * r['target_minus_true_mean_jy']:+.3f}".replace("-", "−"),
                  f"{img:.3f}", f"{uv_all:.3f}", f"{uv_cut:.3f}", f"{img / uv_cut:.3f}"]

@@ -252,6 +252,17 @@ def model_stats(model: Path, residual: Path, catalog: Any, true_apparent: np.nda
 
 
 # ------------------------------------------------------------------------------ one scene
+def tclean_options(proc: Any, threshold: float, gridder: str, deconvolver: str,
+                   wprojplanes: int) -> dict[str, Any]:
+    """``tclean`` keywords for a procedure's grid and CLEAN threshold (Jy/beam)."""
+    opts: dict[str, Any] = {"imsize": [proc.size, proc.size], "cell": f"{proc.cell_arcsec}arcsec",
+                            "threshold": f"{threshold}Jy", "gridder": gridder,
+                            "deconvolver": deconvolver}
+    if gridder in ("wproject", "widefield"):
+        opts["wprojplanes"] = wprojplanes
+    return opts
+
+
 def run_scene(preset: str, scale: float, seed: int, casa_runs: list[tuple[str, str]],
               root: Path, radius_beams: float, timeout: float, wprojplanes: int = -1
               ) -> dict[str, Any]:
@@ -302,10 +313,7 @@ def run_scene(preset: str, scale: float, seed: int, casa_runs: list[tuple[str, s
         if gridder in ("wproject", "widefield"):
             label += f" (wprojplanes {wprojplanes})"
         prefix = casa.work / f"{gridder}_{deconvolver}"
-        opts = {"imsize": [proc.size, proc.size], "cell": f"{proc.cell_arcsec}arcsec",
-                "threshold": f"{threshold}Jy", "gridder": gridder, "deconvolver": deconvolver}
-        if gridder in ("wproject", "widefield"):
-            opts["wprojplanes"] = wprojplanes
+        opts = tclean_options(proc, threshold, gridder, deconvolver, wprojplanes)
         try:
             info = run_child(CASA_CLEAN, [ms, prefix, json.dumps(opts)], casa.env, casa.work, timeout)
         except (RuntimeError, subprocess.TimeoutExpired) as exc:

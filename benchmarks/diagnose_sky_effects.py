@@ -111,9 +111,7 @@ def casa_clean_subtract(store: Path, proc: Any, threshold: float, work: Path,
     ms = xstack.export_ms(store, work / "sim.ms")
     casa = bcc.Casa(work)
     prefix = casa.work / f"wproject_{deconvolver}"
-    opts = {"imsize": [proc.size, proc.size], "cell": f"{proc.cell_arcsec}arcsec",
-            "threshold": f"{threshold}Jy", "gridder": "wproject", "wprojplanes": wprojplanes,
-            "deconvolver": deconvolver}
+    opts = bcc.tclean_options(proc, threshold, "wproject", deconvolver, wprojplanes)
     if deconvolver == "multiscale":
         # point components, and Gaussians of 3" and 10" (the bright sources' 0.5-5" FWHM
         # convolved with the ~1.4" beam)

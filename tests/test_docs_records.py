@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _bench_helpers import load_benchmark
 
 import xstack
 
@@ -181,12 +182,7 @@ def _sky(n: int, variant: str) -> list[dict]:
 def test_sky_effects_tables_are_the_records():
     """The ingredient runs' tables, from their lines and the published lines of the same
     seeds, with plain numpy; the lines are of today's benchmark scenes (digest)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "diagnose_sky_effects", DOCS.parent / "benchmarks" / "diagnose_sky_effects.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("diagnose_sky_effects")
     tn = _sky(6, "targets+noise")
     assert tn and {r["scene_sha256"] for r in tn} == {
         bench.variant_scene(6, 1.0, "targets+noise").digest()}
@@ -229,12 +225,7 @@ CASA_ROWS = {"x6_int60": "xstack, Clark", "c6_int60_clark": "CASA tclean, Clark"
 def test_casa_clean_table_is_the_records():
     """The CASA-against-xstack CLEAN table, row by row from its records (µJy, mJy), and the
     records are of one scene: today's noiseless type-6 variant with 60 s integrations."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "diagnose_sky_effects", DOCS.parent / "benchmarks" / "diagnose_sky_effects.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("diagnose_sky_effects")
     digest = bench.variant_scene(6, 1.0, "targets+bright", integration=60.0).digest()
     assert len(list((SKY / "type6" / "casa").glob("*.json"))) == len(CASA_ROWS)
     page = (DOCS / "reproduction.md").read_text(encoding="utf-8")

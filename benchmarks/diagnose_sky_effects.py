@@ -148,7 +148,6 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: 
     ``clean="casa"`` CLEANs with CASA's ``tclean`` instead of xstack's
     (:func:`casa_clean_subtract`); ``integration`` (s) replaces the preset's integration
     time, which makes a noiseless data set small enough for CASA's gridder."""
-    from astropy.coordinates import SkyCoord
     from astropy.io import fits
     from astropy.table import Table
     from astropy.wcs import WCS
@@ -184,16 +183,9 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: 
     value[inside] = data[iy[inside], ix[inside]]
     d = value - np.asarray(targets["flux"], float)
     good = np.isfinite(d)
-    strong = np.asarray(bright["flux"], float) > 1e-4
-    _, sep, _ = SkyCoord(targets["ra"], targets["dec"], unit="deg").match_to_catalog_sky(
-        SkyCoord(bright["ra"][strong], bright["dec"][strong], unit="deg"))
-    sep = sep.arcsec
-    bins = []
-    for lo, hi in ((0, 10), (10, 30), (30, 60), (60, 120), (120, np.inf)):
-        m = good & (sep >= lo) & (sep < hi)
-        bins.append({"from_arcsec": lo, "to_arcsec": hi, "n": int(m.sum()),
-                     "mean_jy": float(d[m].mean()) if m.any() else None,
-                     "median_jy": float(np.median(d[m])) if m.any() else None})
+    strong = np.asarray(bright["flux"], float) > STRONG_JY
+    sep = nearest_arcsec(targets, bright[strong])
+    bins = distance_bins(d, sep)
     fin = np.isfinite(data)
     # the same map at uniformly random positions of the targets' box: what a stack expects
     # over realisations, unweighted and with 1/sigma_k^2 (sigma_k the clipped local noise of
@@ -235,15 +227,16 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: 
                                 else None).flux_jy)
     # what the model left of the bright sources in the data (no imager): the residual
     # uv-stacked at their true positions, pb weights, all baselines and beyond the uv cut
+    # (nothing to stack in a variant without bright sources: no numbers rather than NaN)
     strong_cat = bright[strong]
     left = {}
-    for cut in (None, proc.uvmin_m):
+    for cut in (None, proc.uvmin_m) if len(strong_cat) else ():
         label = f"> {cut:g} m" if cut else "all baselines"
         left[label] = float(xstack.stack_uv(work / "residual.zarr", strong_cat, weighting="pb",
                                             uvmin=cut).flux_jy)
     return {"type": n, "seed": seed, "variant": variant, "integration_s": integration,
-            "scene_sha256": scene.digest(), **info,
-            "bright_left_mean_jy": left, "bright_true_mean_jy": float(np.mean(strong_cat["flux"])),
+            "scene_sha256": scene.digest(), **info, "bright_left_mean_jy": left,
+            "bright_true_mean_jy": float(np.mean(strong_cat["flux"])) if left else None,
             "true_flux_jy": float(np.mean(targets["flux"])),
             "target_minus_true_mean_jy": float(d[good].mean()),
             "target_minus_true_se_jy": float(d[good].std(ddof=1) / np.sqrt(good.sum())),
@@ -254,6 +247,39 @@ def confusion(n: int, seed: int, scale: float, variant: str, work: Path, clean: 
             "map_median_jy_per_beam": float(np.median(data[fin])),
             "random_positions": random,
             "by_distance_to_bright": bins, "stacks_jy": stacks}
+
+
+#: the bright sources (Jy) whose distance bins the targets and whose leftovers are stacked
+STRONG_JY = 1e-4
+
+
+def nearest_arcsec(targets: Any, sources: Any) -> np.ndarray:
+    """Each target's distance (arcsec) to the nearest of ``sources`` (tables with ``ra``,
+    ``dec`` in degrees); infinite for all targets when ``sources`` is empty, so that they
+    fall in the farthest bin rather than failing the match."""
+    from astropy.coordinates import SkyCoord
+
+    if len(sources) == 0:
+        return np.full(len(targets), np.inf)
+    _, sep, _ = SkyCoord(targets["ra"], targets["dec"], unit="deg").match_to_catalog_sky(
+        SkyCoord(sources["ra"], sources["dec"], unit="deg"))
+    return np.asarray(sep.arcsec, float)
+
+
+def distance_bins(values: np.ndarray, sep: np.ndarray,
+                  edges: tuple[float, ...] = (0, 10, 30, 60, 120, np.inf)) -> list[dict[str, Any]]:
+    """Mean and median of the finite ``values`` (Jy) in bins of ``sep`` (arcsec) between
+    ``edges``; the last bin is closed above, so an infinite distance (no source at all)
+    counts in it."""
+    good = np.isfinite(values)
+    bins = []
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        upper = sep <= hi if i == len(edges) - 2 else sep < hi
+        m = good & (sep >= lo) & upper
+        bins.append({"from_arcsec": lo, "to_arcsec": hi, "n": int(m.sum()),
+                     "mean_jy": float(values[m].mean()) if m.any() else None,
+                     "median_jy": float(np.median(values[m])) if m.any() else None})
+    return bins
 
 
 def _model_sums(model: Path) -> dict[str, Any]:

@@ -35,8 +35,25 @@ def crowded_store(tmp_path_factory):
     return path, int(np.count_nonzero(~ds.FLAG.values))
 
 
+@pytest.fixture
+def gridder_threads():
+    """ducc0's thread pool of at least 2 threads for the controls, restored after.
+
+    ducc0 sizes its pool from OMP_NUM_THREADS when first imported, and a dask
+    ``LocalCluster`` (started by earlier test modules) sets that to 1 in this process: the
+    threaded controls would then run on one thread and be reproducible too."""
+    import ducc0
+
+    before = ducc0.misc.thread_pool_size()
+    if before < 2:
+        ducc0.misc.resize_thread_pool(2)
+    yield
+    if before < 2:
+        ducc0.misc.resize_thread_pool(before)
+
+
 @pytest.mark.parametrize("epsilon", [1e-4, 1e-6])
-def test_dirty_image_same_bits_whatever_the_threads(crowded_store, epsilon):
+def test_dirty_image_same_bits_whatever_the_threads(crowded_store, epsilon, gridder_threads):
     path, _ = crowded_store
     kw = dict(size=512, cell_arcsec=1.0, epsilon=epsilon)
     ref = make_image(path, nthreads=1, **kw)
@@ -52,7 +69,7 @@ def test_dirty_image_same_bits_whatever_the_threads(crowded_store, epsilon):
     assert not np.array_equal(threaded.image, ref.image)
 
 
-def test_clean_same_model_whatever_the_threads(crowded_store):
+def test_clean_same_model_whatever_the_threads(crowded_store, gridder_threads):
     path, n_vis = crowded_store
     thermal = NOISE / math.sqrt(n_vis)
     kw = dict(size=512, cell_arcsec=1.0, niter=3000, threshold=1.5 * thermal, epsilon=1e-4)

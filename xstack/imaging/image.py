@@ -17,7 +17,10 @@ Conventions (``docs/imaging.md``):
 Visibilities are read chunk by chunk (the store's time x baseline chunks) and the dirty image
 is accumulated: ducc0's ``vis2dirty`` is linear, so nothing larger than one chunk is loaded.
 With a ``distributed.Client`` active, each batch of chunks is read and gridded by a task on
-the cluster and the partial images are summed there by a tree of tasks.
+the cluster and the partial images are summed there in batch order. Both paths cut the chunks
+into the same batches (:class:`_BatchCutter`, by unflagged visibilities; a cluster counts them
+first, a task per chunk) and add them in the same order, so a cluster's image is the local
+one to the bit (with reproducible gridding, the default).
 """
 
 from __future__ import annotations
@@ -333,6 +336,21 @@ def rows_of_block(uvw: np.ndarray, weight: np.ndarray, flag: np.ndarray, pols: S
     return np.ascontiguousarray(uvw_all), np.ascontiguousarray(w_all[keep]), v_all
 
 
+def count_rows_of_block(uvw: np.ndarray, weight: np.ndarray, flag: np.ndarray,
+                        pols: Sequence[int]) -> int:
+    """Visibilities (rows x channels) :func:`rows_of_block` gives the gridder for this block
+    without visibilities (a row is kept if any channel is unflagged with a finite positive
+    weight and finite uvw): what a batch of chunks is measured in (:class:`_BatchCutter`)."""
+    nf = weight.shape[2]
+    good_uvw = np.all(np.isfinite(uvw.reshape(-1, 3)), axis=1)
+    kept = 0
+    for p in pols:
+        w = weight[..., p].reshape(-1, nf)
+        ok = ~flag[..., p].reshape(-1, nf) & (w > 0) & np.isfinite(w) & good_uvw[:, None]
+        kept += int(np.count_nonzero(np.any(ok, axis=1)))
+    return kept * nf
+
+
 # --------------------------------------------------------------------------- ducc0 wrappers
 def _precision(epsilon: float) -> tuple[type, type]:
     # single precision is ~2x faster and good to ~1e-5; below that, double
@@ -530,9 +548,11 @@ MAX_BATCHES_IN_FLIGHT = 4
 _DIRTY_PASS_THREADS = 2
 #: Key prefix of the gridding tasks on a cluster (one per batch of store chunks).
 GRID_TASK = "xstack-image-grid"
-#: Key prefix of the tasks that sum the gridding tasks' partial images (a tree).
+#: Key prefix of the planning tasks on a cluster (a chunk's count of gridder visibilities).
+COUNT_TASK = "xstack-image-count"
+#: Key prefix of the tasks that sum the gridding tasks' partial images (a chain).
 SUM_TASK = "xstack-image-sum"
-#: Partial results summed per tree node (fan-in of the reduction).
+#: Gridding tasks' partial results each summing task adds to the running sum.
 _SUM_FAN_IN = 4
 #: Arrays each pass reads per store chunk.
 _PASS_COLUMNS = {"density": ("UVW", "WEIGHT", "FLAG"), "model": ("UVW", "WEIGHT", "FLAG"),
@@ -566,8 +586,8 @@ class _GridSpec:
         precision, measured); a threaded prediction differs between thread counts. CLEAN,
         taking the largest residual pixel at every step, turns either into other components.
         One thread when ``reproducible``: the same data give the same bits whatever the
-        threads (on a cluster, whatever the workers' threads: its batches and their sums are
-        fixed by the store's chunks, though not the same as the local path's).
+        threads (on a cluster too, whatever the workers' threads: batches and their sums are
+        the local path's, see :class:`_BatchCutter`).
         """
         return {"epsilon": self.epsilon, "wterm": self.wterm,
                 "nthreads": 1 if self.reproducible else nthreads}
@@ -614,6 +634,44 @@ class _Batch:
 
     def __init__(self, chunks: list[tuple[list[_Read], list[int], np.ndarray]]) -> None:
         self.chunks = chunks
+
+
+class _BatchCutter:
+    """Cuts a sequence of store chunks into batches: a batch is closed once it holds
+    ``size`` gridder visibilities (:func:`count_rows_of_block`: after flagging, so a batch
+    is a full ducc0 call however much is flagged; each call pays for the FFTs of the whole
+    oversampled grid) and before a chunk of another frequency axis.
+
+    The one rule of both paths: the local path feeds it chunk by chunk as it reads them, a
+    cluster's plan with counts measured beforehand, so that both make the same batches and
+    add their sums in the same order (the same bits).
+    """
+
+    def __init__(self, size: int) -> None:
+        self.size, self.n, self.freq = int(size), 0, None
+
+    def before(self, freq: np.ndarray) -> bool:
+        """Whether a batch ends before a chunk of frequency axis ``freq``."""
+        cut = self.freq is not None and (self.freq.shape != freq.shape
+                                          or not np.array_equal(self.freq, freq))
+        if cut:
+            self.n = 0
+        self.freq = freq
+        return cut
+
+    def after(self, count: int) -> bool:
+        """Whether the batch ends after a chunk of ``count`` visibilities."""
+        self.n += int(count)
+        if self.n >= self.size:
+            self.n = 0
+            return True
+        return False
+
+
+def _count_task(reads: list[_Read], pols: list[int]) -> int:
+    """One cluster task of the planning pass: a chunk's :func:`count_rows_of_block`."""
+    uvw, weight, flag = (r.read() for r in reads)
+    return count_rows_of_block(uvw, weight, flag, pols)
 
 
 class _Columns:
@@ -765,12 +823,19 @@ def _add_sums(acc: dict[str, Any] | None, part: dict[str, Any]) -> dict[str, Any
     return acc
 
 
-def _sum_task(*parts: dict[str, Any]) -> dict[str, Any]:
-    """A node of the cluster's reduction tree: the sum of its inputs (left untouched: a
-    rerun task must find them as they were)."""
-    acc = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in parts[0].items()}
-    for p in parts[1:]:
-        acc = _add_sums(acc, p)
+def _sum_task(*parts: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A link of the cluster's summing chain: its inputs added left to right (the running sum
+    first, then the next batches), as the local path adds batch after batch, so the
+    floating-point sum is the same. Empty batches (None) are skipped; the inputs are left
+    untouched (a rerun task must find them as they were)."""
+    acc = None
+    for p in parts:
+        if p is None:
+            continue
+        if acc is None:
+            acc = {k: v.copy() if isinstance(v, np.ndarray) else v for k, v in p.items()}
+        else:
+            acc = _add_sums(acc, p)
     return acc
 
 
@@ -789,8 +854,9 @@ def _task_threads(requested: int) -> int:
 
 
 def _grid_task(spec: _GridSpec, kind: str, batch: _Batch, density: np.ndarray | None,
-               model: np.ndarray | None) -> dict[str, Any]:
-    """One cluster task: read a batch of store chunks here, grid them, return partial sums.
+               model: np.ndarray | None) -> dict[str, Any] | None:
+    """One cluster task: read a batch of store chunks here, grid them, return partial sums
+    (None if no visibility of the batch is unflagged).
 
     ``kind``: ``density`` (uniform/Briggs uv density grid), ``dirty`` (dirty image, PSF and
     weight sums) or ``model`` (dirty image of ``model``'s predicted visibilities).
@@ -810,7 +876,7 @@ def _grid_task(spec: _GridSpec, kind: str, batch: _Batch, density: np.ndarray | 
     if grid is not None:
         return {"grid": grid}
     if not rows:
-        return _empty_sums(spec, kind)
+        return None  # as the local path, which skips a batch with nothing to grid
     freq = batch.chunks[0][2]
     uvw = np.concatenate([r[0] for r in rows])
     w = np.concatenate([r[1] for r in rows])
@@ -863,8 +929,10 @@ class Imager:
         self.f2 = 0.0
         #: visibilities (rows x channels) gathered per ducc0 call
         self.batch_visibilities = BATCH_VISIBILITIES
-        #: cluster passes' batch plans by the columns they read (see :meth:`_plan`)
+        #: cluster passes' batch plans by the columns they read (see :meth:`_plan`), and
+        #: the batches of store chunks they share (:meth:`_cluster_jobs`)
         self._plans: dict[tuple[str, ...], list[_Batch]] = {}
+        self._cluster_plan: list[list[tuple[str, xr.Dataset, slice, slice]]] | None = None
         if weighting != "natural":
             self._density_pass()
 
@@ -876,89 +944,120 @@ class Imager:
                          data_center=self.data_center, phase_center=self.phase_center,
                          reproducible=self.reproducible)
 
-    def _iter(self, need_vis: bool, description: str) -> Iterator[tuple[np.ndarray, ...]]:
-        """Yield (uvw, freq, imaging weight, vis, data weight) batches of about
-        ``batch_visibilities`` visibilities.
+    def _chunks(self) -> list[tuple[str, xr.Dataset, slice, slice, np.ndarray]]:
+        """Every store chunk of the selection, in order: (partition, dataset, time slice,
+        baseline slice, frequencies in Hz)."""
+        out = []
+        for name, ds in self.parts:
+            freq = np.asarray(ds["frequency"].values, dtype=np.float64)
+            out.extend((name, ds, ts, bs, freq) for ts, bs in _blocks(ds))
+        return out
 
-        Small store chunks are concatenated before gridding: every ducc0 call pays for the
-        FFTs of the whole (oversampled) grid, so fewer, larger calls are much faster.
-        """
+    def _local_batches(self, names: Sequence[str], description: str
+                       ) -> Iterator[list[tuple[str, np.ndarray, list[np.ndarray]]]]:
+        """The chunks read in this process, grouped into :class:`_BatchCutter`'s batches:
+        each a list of (partition, frequencies, arrays of ``names``; the first three UVW,
+        WEIGHT, FLAG)."""
         from xstack._progress import progress_iter
 
+        chunks = self._chunks()
+        cutter = _BatchCutter(self.batch_visibilities)
+        batch: list[tuple[str, np.ndarray, list[np.ndarray]]] = []
+        for name, ds, ts, bs, freq in progress_iter(chunks, description, self.progress,
+                                                     total=len(chunks)):
+            if cutter.before(freq) and batch:
+                yield batch
+                batch = []
+            arrays = _read(ds, ts, bs, names)
+            batch.append((name, freq, arrays))
+            if cutter.after(count_rows_of_block(*arrays[:3], self.pols[name])):
+                yield batch
+                batch = []
+        if batch:
+            yield batch
+
+    def _iter(self, need_vis: bool, description: str) -> Iterator[tuple[np.ndarray, ...]]:
+        """Yield the (uvw, freq, imaging weight, vis, data weight) rows of each batch with
+        anything unflagged, read chunk by chunk in this process.
+
+        Small store chunks are gathered into batches (:class:`_BatchCutter`): every ducc0
+        call pays for the FFTs of the whole (oversampled) grid, so fewer, larger calls are
+        much faster.
+        """
         spec = self._spec()
-        jobs = [(name, ds, ts, bs) for name, ds in self.parts for ts, bs in _blocks(ds)]
-        buf: list[tuple[np.ndarray, ...]] = []
-        nbuf = 0
-        cur: np.ndarray | None = None
-
-        def flush() -> tuple[np.ndarray, ...]:
-            uvw = np.concatenate([b[0] for b in buf])
-            w = np.concatenate([b[1] for b in buf])
-            v = np.concatenate([b[2] for b in buf]) if need_vis else None
-            raw = np.concatenate([b[3] for b in buf])
-            return uvw, cur, w, v, raw
-
-        for name, ds, ts, bs in progress_iter(jobs, description, self.progress, total=len(jobs)):
-            names = ["UVW", "WEIGHT", "FLAG"] + (["VISIBILITY"] if need_vis else [])
-            freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-            rows = _chunk_rows(spec, _read(ds, ts, bs, names), self.pols[name], freq,
-                               self.density, need_vis)
-            if rows is None:
+        names = ["UVW", "WEIGHT", "FLAG"] + (["VISIBILITY"] if need_vis else [])
+        for batch in self._local_batches(names, description):
+            rows = [r for name, freq, arrays in batch
+                    if (r := _chunk_rows(spec, arrays, self.pols[name], freq, self.density,
+                                         need_vis)) is not None]
+            if not rows:
                 continue
-            if buf and (cur.shape != freq.shape or not np.array_equal(cur, freq)):
-                yield flush()
-                buf, nbuf = [], 0
-            cur = freq
-            buf.append(rows)
-            nbuf += rows[1].size
-            if nbuf >= self.batch_visibilities:
-                yield flush()
-                buf, nbuf = [], 0
-        if buf:
-            yield flush()
+            uvw = np.concatenate([r[0] for r in rows])
+            w = np.concatenate([r[1] for r in rows])
+            v = np.concatenate([r[2] for r in rows]) if need_vis else None
+            raw = np.concatenate([r[3] for r in rows])
+            yield uvw, batch[0][1], w, v, raw
 
-    def _plan(self, kind: str) -> list[_Batch]:
-        """The cluster tasks' batches of store chunks, from the chunk layout alone.
+    def _cluster_jobs(self, client: Any) -> list[list[tuple[str, xr.Dataset, slice, slice]]]:
+        """The local path's batches (:class:`_BatchCutter`) for a cluster's tasks, from each
+        chunk's count of gridder visibilities, measured once by a task per chunk on the
+        cluster (reads UVW, WEIGHT and FLAG; the density pass and every major cycle share it).
+        """
+        if self._cluster_plan is not None:
+            return self._cluster_plan
+        import uuid
 
-        A batch holds about ``batch_visibilities`` (rows x channels x parallel hands before
-        flagging: an upper bound of what the local path counts) of one frequency axis, as
-        the local path gathers them per ducc0 call. A task carries only the graph of its own
-        chunks. Made once per set of columns (the density pass and CLEAN's major cycles share
-        one).
+        import dask
+
+        from xstack._progress import dask_progress
+
+        tag = uuid.uuid4().hex[:12]
+        chunks = self._chunks()
+        columns = _Columns()
+        tasks = [dask.delayed(_count_task, pure=False)(
+                     [columns.read(ds, c, ts, bs) for c in ("UVW", "WEIGHT", "FLAG")],
+                     self.pols[name], dask_key_name=f"{COUNT_TASK}-{tag}-{i}")
+                 for i, (name, ds, ts, bs, _) in enumerate(chunks)]
+        with dask_progress("planning", enabled=self.progress):
+            counts = dask.compute(*tasks) if tasks else ()
+        plan: list[list[tuple[str, xr.Dataset, slice, slice]]] = []
+        cur: list[tuple[str, xr.Dataset, slice, slice]] = []
+        cutter = _BatchCutter(self.batch_visibilities)
+        for (name, ds, ts, bs, freq), n in zip(chunks, counts, strict=True):
+            if cutter.before(freq) and cur:
+                plan.append(cur)
+                cur = []
+            cur.append((name, ds, ts, bs))
+            if cutter.after(n):
+                plan.append(cur)
+                cur = []
+        if cur:
+            plan.append(cur)
+        self._cluster_plan = plan
+        return plan
+
+    def _plan(self, client: Any, kind: str) -> list[_Batch]:
+        """The cluster tasks' batches (:meth:`_cluster_jobs`) as reads of their store chunks.
+
+        A task carries only the graph of its own chunks. Made once per set of columns (the
+        density pass and CLEAN's major cycles share one).
         """
         names = _PASS_COLUMNS[kind]
         if names in self._plans:
             return self._plans[names]
-        plan: list[list[tuple[str, xr.Dataset, slice, slice]]] = []
-        cur: list[tuple[str, xr.Dataset, slice, slice]] = []
-        n = 0
-        cur_freq: np.ndarray | None = None
-        for name, ds in self.parts:
-            freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-            per_row = freq.size * len(self.pols[name])
-            for ts, bs in _blocks(ds):
-                if cur and (cur_freq.shape != freq.shape or not np.array_equal(cur_freq, freq)):
-                    plan.append(cur)
-                    cur, n = [], 0
-                cur.append((name, ds, ts, bs))
-                cur_freq = freq
-                n += (ts.stop - ts.start) * (bs.stop - bs.start) * per_row
-                if n >= self.batch_visibilities:
-                    plan.append(cur)
-                    cur, n = [], 0
-        if cur:
-            plan.append(cur)
         columns = _Columns()
         batches = [_Batch([([columns.read(ds, c, ts, bs) for c in names], self.pols[name],
                             np.asarray(ds["frequency"].values, dtype=np.float64))
-                           for name, ds, ts, bs in jobs]) for jobs in plan]
+                           for name, ds, ts, bs in jobs]) for jobs in self._cluster_jobs(client)]
         self._plans[names] = batches
         return batches
 
     def _on_cluster(self, client: Any, kind: str, description: str,
                     model: np.ndarray | None = None) -> dict[str, Any]:
         """One pass as cluster tasks: a gridding task per batch (reading its own chunks),
-        the partial sums added by a tree of tasks; only the total comes back.
+        the partial sums added in batch order by a chain of tasks, each adding up to
+        ``_SUM_FAN_IN`` batches to the running sum (the local path's order, so the same
+        bits); only the total comes back.
 
         The density grid and the model image go to the cluster once (scattered), not with
         every task.
@@ -979,19 +1078,18 @@ class Imager:
         level = [dask.delayed(_grid_task, pure=False)(
                      spec, kind, batch, density, shipped,
                      dask_key_name=f"{GRID_TASK}-{kind}-{tag}-{i}")
-                 for i, batch in enumerate(self._plan(kind))]
+                 for i, batch in enumerate(self._plan(client, kind))]
         if not level:
             return _empty_sums(spec, kind)
-        depth = 0
-        while len(level) > 1:
-            level = [dask.delayed(_sum_task, pure=False)(
-                         *level[i:i + _SUM_FAN_IN],
-                         dask_key_name=f"{SUM_TASK}-{kind}-{tag}-{depth}-{i}")
-                     for i in range(0, len(level), _SUM_FAN_IN)]
-            depth += 1
+        # the first link sums batches 0..K-1, each next one the running sum and K more
+        total = dask.delayed(_sum_task, pure=False)(
+            *level[:_SUM_FAN_IN], dask_key_name=f"{SUM_TASK}-{kind}-{tag}-0")
+        for i in range(_SUM_FAN_IN, len(level), _SUM_FAN_IN):
+            total = dask.delayed(_sum_task, pure=False)(
+                total, *level[i:i + _SUM_FAN_IN], dask_key_name=f"{SUM_TASK}-{kind}-{tag}-{i}")
         with dask_progress(description, enabled=self.progress):
-            (total,) = dask.compute(level[0])
-        return total
+            (total,) = dask.compute(total)
+        return _empty_sums(spec, kind) if total is None else total
 
     def _density_pass(self) -> None:
         from xstack._cluster import active_client
@@ -1000,13 +1098,15 @@ class Imager:
         if client is not None:
             grid = self._on_cluster(client, "density", "weights")["grid"]
         else:
-            grid = np.zeros((self.ny, self.nx))
-            spec = self._spec()
-            for name, ds in self.parts:
-                freq = np.asarray(ds["frequency"].values, dtype=np.float64)
-                for ts, bs in _blocks(ds):
-                    _density_chunk(spec, grid, _read(ds, ts, bs, ["UVW", "WEIGHT", "FLAG"]),
-                                   self.pols[name], freq)
+            # a grid per batch, added in batch order: a cluster's sum, to the bit
+            grid, spec = None, self._spec()
+            for batch in self._local_batches(["UVW", "WEIGHT", "FLAG"], "weights"):
+                part = np.zeros((self.ny, self.nx))
+                for name, freq, arrays in batch:
+                    _density_chunk(spec, part, arrays, self.pols[name], freq)
+                grid = part if grid is None else grid + part
+            if grid is None:
+                grid = np.zeros((self.ny, self.nx))
         self.density = grid
         self.f2 = kernels.briggs_f2(grid, self.robust) if self.weighting == "briggs" else 0.0
 

@@ -998,7 +998,7 @@ class Imager:
             raw = np.concatenate([r[3] for r in rows])
             yield uvw, batch[0][1], w, v, raw
 
-    def _cluster_jobs(self, client: Any) -> list[list[tuple[str, xr.Dataset, slice, slice]]]:
+    def _cluster_jobs(self) -> list[list[tuple[str, xr.Dataset, slice, slice]]]:
         """The local path's batches (:class:`_BatchCutter`) for a cluster's tasks, from each
         chunk's count of gridder visibilities, measured once by a task per chunk on the
         cluster (reads UVW, WEIGHT and FLAG; the density pass and every major cycle share it).
@@ -1036,7 +1036,7 @@ class Imager:
         self._cluster_plan = plan
         return plan
 
-    def _plan(self, client: Any, kind: str) -> list[_Batch]:
+    def _plan(self, kind: str) -> list[_Batch]:
         """The cluster tasks' batches (:meth:`_cluster_jobs`) as reads of their store chunks.
 
         A task carries only the graph of its own chunks. Made once per set of columns (the
@@ -1048,7 +1048,7 @@ class Imager:
         columns = _Columns()
         batches = [_Batch([([columns.read(ds, c, ts, bs) for c in names], self.pols[name],
                             np.asarray(ds["frequency"].values, dtype=np.float64))
-                           for name, ds, ts, bs in jobs]) for jobs in self._cluster_jobs(client)]
+                           for name, ds, ts, bs in jobs]) for jobs in self._cluster_jobs()]
         self._plans[names] = batches
         return batches
 
@@ -1078,7 +1078,7 @@ class Imager:
         level = [dask.delayed(_grid_task, pure=False)(
                      spec, kind, batch, density, shipped,
                      dask_key_name=f"{GRID_TASK}-{kind}-{tag}-{i}")
-                 for i, batch in enumerate(self._plan(client, kind))]
+                 for i, batch in enumerate(self._plan(kind))]
         if not level:
             return _empty_sums(spec, kind)
         # the first link sums batches 0..K-1, each next one the running sum and K more

@@ -14,6 +14,10 @@ Run ``python benchmarks/bench_imaging.py [--time-step S] [--skip-big]``; prints 
    default) against threaded ducc0 (``reproducible=False``, ``xstack image
    --threaded-gridding``): time of the dirty image + PSF and of a major/minor-cycle CLEAN of
    the type-3 bright sources, each run twice, and whether the second run gave the same bits.
+6. ``--only cluster``: the same scene written to a zarr store and imaged and CLEANed from it
+   locally (dask's threaded scheduler) and on a 2-process ``LocalCluster`` (1 thread each):
+   time of each, the cluster's planning pass (a task per chunk counting its visibilities, so
+   that the cluster cuts the local path's batches) and whether the two give the same bits.
 """
 
 from __future__ import annotations
@@ -275,6 +279,76 @@ def bench_reproducible(rows: list[str], time_step: float, size: int, nsigma: flo
             f"{c1.model.sum() / total:.4f} |")
 
 
+def _task_span(stream: list[dict], prefix: str) -> tuple[int, float, float]:
+    """Tasks of ``stream`` (``distributed.get_task_stream``) whose key starts with ``prefix``:
+    (number, wall span from the first start to the last stop (s), summed compute time (s))."""
+    spans = [ss for t in stream if str(t["key"]).startswith(prefix)
+             for ss in t["startstops"] if ss["action"] == "compute"]
+    if not spans:
+        return 0, 0.0, 0.0
+    tasks = {str(t["key"]) for t in stream if str(t["key"]).startswith(prefix)}
+    return (len(tasks), max(s["stop"] for s in spans) - min(s["start"] for s in spans),
+            sum(s["stop"] - s["start"] for s in spans))
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """The same shape, dtype and bytes (NaNs in the same places count as equal)."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def bench_cluster(rows: list[str], time_step: float, size: int, nsigma: float,
+                  epsilon: float, chunk_times: int) -> None:
+    """Local against a 2-process LocalCluster on a store: time, planning pass, same bits."""
+    import tempfile
+    from pathlib import Path
+
+    from distributed import get_task_stream
+
+    from xstack._cluster import use_cluster
+    from xstack.imaging.clean import clean_data
+    from xstack.imaging.image import COUNT_TASK, GRID_TASK
+    from xstack.schema import write_store
+
+    ds, thermal, total = _type3_bright(time_step, size)
+    nvis = ds.VISIBILITY.size
+    with tempfile.TemporaryDirectory(prefix="bench-imaging-cluster-") as tmp:
+        store = Path(tmp) / "type3.zarr"
+        write_store({"spw0_field0": ds.chunk({"time": chunk_times})}, store)
+        n_chunks = -(-ds.sizes["time"] // chunk_times)
+        del ds
+        kw = dict(size=size, cell_arcsec=0.45, epsilon=epsilon)
+        runs = {}
+        for mode in ("local", "cluster"):
+            with use_cluster(workers=2 if mode == "cluster" else None) as client:
+                t = time.perf_counter()
+                if client is not None:
+                    with get_task_stream(client) as ts:
+                        img = make_image(store, **kw)
+                    stream = ts.data
+                else:
+                    img, stream = make_image(store, **kw), []
+                t_img = time.perf_counter() - t
+                t = time.perf_counter()
+                _, cres = clean_data(store, niter=20000, threshold=nsigma * thermal,
+                                     algorithm="clark", **kw)
+                t_cl = time.perf_counter() - t
+            n_count, plan_span, plan_cpu = _task_span(stream, COUNT_TASK)
+            n_grid = _task_span(stream, f"{GRID_TASK}-dirty")[0]
+            runs[mode] = (img, cres)
+            ref_img, ref_cl = runs["local"]
+            same_img = _same_bits(img.image, ref_img.image) and _same_bits(img.psf, ref_img.psf)
+            same_model = (_same_bits(cres.model, ref_cl.model)
+                          and _same_bits(cres.residual, ref_cl.residual))
+            plan = (f"{plan_span:.1f} ({100 * plan_span / t_img:.0f} %; {n_count} tasks, "
+                    f"{plan_cpu:.1f} s compute)" if n_count else "n/a")
+            rows.append(
+                f"| {mode} | {nvis / 1e6:.1f} | {n_chunks} | {n_grid or 'n/a'} | {size} | "
+                f"{t_img:.1f} | {plan} | {t_cl:.0f} | {cres.n_components} | {cres.n_major} | "
+                f"{'yes' if same_img else 'no'} | {'yes' if same_model else 'no'} | "
+                f"{cres.model.sum() / total:.4f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--time-step", type=float, default=10.0,
@@ -288,11 +362,24 @@ def main() -> None:
     parser.add_argument("--clark-update", action="store_true",
                         help="only time Clark's residual update (old fftconvolve vs kept PSF "
                              "transform)")
-    parser.add_argument("--only", choices=["reproducible"], default=None,
-                        help="reproducible: reproducible against threaded gridding")
+    parser.add_argument("--only", choices=["reproducible", "cluster"], default=None,
+                        help="reproducible: reproducible against threaded gridding; "
+                             "cluster: a store imaged locally and on a LocalCluster")
+    parser.add_argument("--chunk-times", type=int, default=400,
+                        help="integrations per store chunk of --only cluster")
     parser.add_argument("--epsilon", type=float, default=1e-4,
                         help="gridder accuracy of --only reproducible (reproduce's 1e-4)")
     args = parser.parse_args()
+    if args.only == "cluster":
+        rows = ["## Local against a LocalCluster (type 3 bright sources from a store, Clark "
+                "CLEAN)\n", "| scheduler | Mvis | chunks | gridding tasks | image "
+                "| dirty + PSF (s) | planning (s) | CLEAN (s) | components | major cycles "
+                "| same image bits | same model bits | CLEANed / true |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        bench_cluster(rows, args.time_step, args.size, args.nsigma, args.epsilon,
+                      args.chunk_times)
+        print("\n".join(rows))
+        return
     if args.only == "reproducible":
         rows = ["## Reproducible against threaded gridding (type 3 bright sources, Clark CLEAN)"
                 "\n", "| ducc0 | Mvis | image | epsilon | dirty + PSF, run 1 / 2 (s) "

@@ -429,3 +429,47 @@ def test_local_cluster_holds_one_queued_read_per_thread():
         env = client.run(lambda: os.environ.get("MALLOC_MMAP_THRESHOLD_"))
     assert saturation == 1.0
     assert set(env.values()) == {"1048576"}
+
+
+_ENV_PROBE = r"""
+import json, os, sys
+from xstack._cluster import use_cluster
+
+names = ["OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MALLOC_MMAP_THRESHOLD_"]
+out = {}
+with use_cluster(workers=1) as client:
+    out["inside"] = {n: os.environ.get(n) for n in names}
+    out["workers"] = list(client.run(lambda: os.environ.get("OMP_NUM_THREADS")).values())
+    import ducc0  # first imported here, with the cluster running
+    out["ducc0_pool"] = ducc0.misc.thread_pool_size()
+out["after"] = {n: os.environ.get(n) for n in names}
+print(json.dumps(out))
+"""
+
+
+def test_local_cluster_leaves_this_process_environment():
+    """distributed's nanny sets OMP_NUM_THREADS=1 (and MKL/OpenBLAS) in the parent process
+    before it spawns a worker and leaves them: ducc0 imported afterwards sized its pool to one
+    thread (``--threaded-gridding`` single-threaded), and a program started later (CASA)
+    inherited them. The workers keep them; this process gets its own values back. Run in a
+    fresh interpreter, whose environment and ducc0 import this test controls."""
+    import subprocess
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                        "MALLOC_MMAP_THRESHOLD_", "DASK_SCHEDULER_ADDRESS")}
+    env["MKL_NUM_THREADS"] = "3"  # a value of the user's own comes back unchanged
+    done = subprocess.run([sys.executable, "-c", _ENV_PROBE], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["workers"] == ["1"]
+    want = {"OMP_NUM_THREADS": None, "MKL_NUM_THREADS": "3", "OPENBLAS_NUM_THREADS": None,
+            "MALLOC_MMAP_THRESHOLD_": None}
+    assert out["inside"] == want
+    assert out["after"] == want
+    # ducc0's pool as a plain interpreter of the same environment sizes it
+    plain = subprocess.run([sys.executable, "-c", "import ducc0; "
+                            "print(ducc0.misc.thread_pool_size())"], env=env,
+                           capture_output=True, text=True, timeout=120)
+    assert out["ducc0_pool"] == int(plain.stdout.strip())

@@ -221,8 +221,11 @@ def _local_cluster(workers: int) -> Iterator[Any]:
 
     threads = max(1, CPU_COUNT // workers)
     with dask.config.set(LOCAL_CLUSTER_CONFIG):
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=threads, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)
+        spawn_env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
+        with _environ_kept(spawn_env):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=threads,
+                                   processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
     try:
         client = Client(cluster, set_as_default=True)
         try:
@@ -230,4 +233,26 @@ def _local_cluster(workers: int) -> Iterator[Any]:
         finally:
             client.close()
     finally:
-        cluster.close()
+        with _environ_kept(spawn_env):  # a worker restarted meanwhile set them again
+            cluster.close()
+
+
+@contextlib.contextmanager
+def _environ_kept(names: Any) -> Iterator[None]:
+    """Restore this process's environment variables ``names`` on leaving the block.
+
+    distributed's nanny sets its ``pre-spawn-environ`` (OMP_NUM_THREADS=1, MKL_NUM_THREADS=1,
+    ...) in the *parent's* ``os.environ`` before it spawns a worker, and leaves them there:
+    a library imported later in this process (ducc0 sizes its thread pool from
+    OMP_NUM_THREADS on import) or a program started from it (CASA) would run on one thread.
+    The workers keep the variables; this process gets its own back.
+    """
+    before = {name: os.environ.get(name) for name in names}
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value

@@ -179,7 +179,10 @@ def test_resume_runs_only_missing_and_redoes_truncated(first, monkeypatch):
 
     monkeypatch.setattr(rr, "run_realization", counting)
     before = _lines(out, 1)
-    res3 = rr.reproduce(1, realizations=3, scale=SCALE, outdir=out, procedures=SMALL)
+    with warnings.catch_warnings():
+        # lines made the same way are reused without a word
+        warnings.filterwarnings("error", message=".*were made with", category=XstackWarning)
+        res3 = rr.reproduce(1, realizations=3, scale=SCALE, outdir=out, procedures=SMALL)
     assert calls == [(1, 2)]
     after = _lines(out, 1)
     assert after[:2] == before and [r["seed"] for r in after] == [0, 1, 2]
@@ -250,8 +253,24 @@ def test_other_procedure_is_not_resumed(first, monkeypatch):
     monkeypatch.setattr(rr, "run_realization", lambda n, seed, *a, **k: calls.append(seed) or {
         "seed": seed, "seconds": 0.0})
     other = {1: dataclasses.replace(SMALL[1], clean_threshold_jy=30e-6)}
-    rr.reproduce(1, realizations=1, scale=SCALE, outdir=out, procedures=other)
+    old = SMALL[1].clean_threshold_jy
+    with pytest.warns(XstackWarning, match=rf"type 1: 1 earlier realisation\(s\) in .* \(seeds 0\) "
+                      rf"were made with procedure clean_threshold_jy {old} -> 3e-05: they are "
+                      r"run again") as got:
+        rr.reproduce(1, realizations=1, scale=SCALE, outdir=out, procedures=other)
     assert calls == [0]
+    assert [w.message.option for w in got if "were made with" in str(w.message)] == ["outdir"]
+
+
+def test_made_differently_names_what_changed():
+    base = {"scale": 0.1, "procedure": {"size": 64, "epsilon": 1e-4}, "scene_sha256": "a"}
+    assert rr.made_differently(base, dict(base)) == ""
+    assert rr.made_differently(base, dict(base, scale=1.0)) == "scale 0.1 -> 1.0"
+    newer = dict(base, procedure={"size": 64, "epsilon": 1e-6, "image_noise_flat": True})
+    assert rr.made_differently(base, newer) == (
+        "procedure epsilon 0.0001 -> 1e-06, image_noise_flat unset -> True")
+    assert rr.made_differently(base, dict(base, scene_sha256="b")) == (
+        "another scene (the preset has changed)")
 
 
 def test_changed_scene_is_not_resumed(first, tmp_path, monkeypatch):
@@ -279,7 +298,8 @@ def test_changed_scene_is_not_resumed(first, tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(rr, "run_realization", lambda n, seed, *a, **k: calls.append(seed) or {
         "seed": seed, "seconds": 0.0})
-    rr.reproduce(1, realizations=2, scale=SCALE, outdir=tmp_path, procedures=SMALL)
+    with pytest.warns(XstackWarning, match=r"\(seeds 0, 1\) were made with another scene"):
+        rr.reproduce(1, realizations=2, scale=SCALE, outdir=tmp_path, procedures=SMALL)
     assert calls == [0, 1]
     used, note = load_type(tmp_path, 1)
     assert [r["seed"] for r in used] == [0, 1] and all(r["seconds"] == 0.0 for r in used)

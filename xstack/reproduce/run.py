@@ -472,6 +472,39 @@ def made_the_same_way(record: dict[str, Any], reference: dict[str, Any]) -> bool
     return all(record.get(key) == reference.get(key) for key in MADE_BY)
 
 
+def made_differently(record: dict[str, Any], reference: dict[str, Any]) -> str:
+    """What ``record`` was made with that ``reference`` is not, in words ("" if nothing):
+    the scale, the procedure's changed fields (``name old -> new``), or the scene."""
+    parts = []
+    if record.get("scale") != reference.get("scale"):
+        parts.append(f"scale {record.get('scale')} -> {reference.get('scale')}")
+    old, new = record.get("procedure") or {}, reference.get("procedure") or {}
+    if old != new:
+        changed = [f"{k} {old.get(k, 'unset')} -> {new.get(k, 'unset')}"
+                   for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+        parts.append("procedure " + ", ".join(changed))
+    if record.get("scene_sha256") != reference.get("scene_sha256"):
+        parts.append("another scene (the preset has changed)")
+    return "; ".join(parts)
+
+
+def _warn_not_reused(n: int, path: Path, on_file: list[dict[str, Any]],
+                     made_by: dict[str, Any], missing: Sequence[int]) -> None:
+    """One line when earlier lines of seeds about to run were made another way: they are kept
+    in the file but not reused, so those realisations run again (possibly hours)."""
+    rerun = sorted({int(r["seed"]) for r in on_file if int(r["seed"]) in set(missing)
+                    and not made_the_same_way(r, made_by)})
+    if not rerun:
+        return
+    why = made_differently(next(r for r in on_file if int(r["seed"]) == rerun[0]
+                                and not made_the_same_way(r, made_by)), made_by)
+    seeds = ", ".join(map(str, rerun[:5])) + (", ..." if len(rerun) > 5 else "")
+    warnings.warn(XstackWarning(
+        f"type {n}: {len(rerun)} earlier realisation(s) in {path} (seeds {seeds}) were made "
+        f"with {why}: they are run again, the old lines kept beside the new; use another "
+        f"outdir to keep the runs apart", option="outdir"), stacklevel=3)
+
+
 def read_records(path: Path) -> list[dict[str, Any]]:
     """The valid JSON lines of ``path`` (a truncated or damaged line is skipped)."""
     if not path.exists():
@@ -679,6 +712,7 @@ def reproduce(types: int | str | Iterable[int | str], *, realizations: int = 100
         records = [r for r in on_file if made_the_same_way(r, made_by)]
         done = {int(r["seed"]) for r in records}
         missing = [s for s in range(int(realizations)) if s not in done]
+        _warn_not_reused(n, path, on_file, made_by, missing)
         keep = not any(workdir.glob("profile_seed*.npz"))
         # a bar (or its silent stand-in) advanced by hand: results arrive out of order
         bar = progress_iter(range(len(missing)), f"type {n}", enabled=progress,

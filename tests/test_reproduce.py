@@ -269,6 +269,9 @@ def test_made_differently_names_what_changed():
     newer = dict(base, procedure={"size": 64, "epsilon": 1e-6, "image_noise_flat": True})
     assert rr.made_differently(base, newer) == (
         "procedure epsilon 0.0001 -> 1e-06, image_noise_flat unset -> True")
+    many = dict(base, procedure={k: 1 for k in "abcdef"})
+    assert rr.made_differently(base, many) == (
+        "procedure a unset -> 1, b unset -> 1, c unset -> 1 and 5 more")
     assert rr.made_differently(base, dict(base, scene_sha256="b")) == (
         "another scene (the preset has changed)")
 

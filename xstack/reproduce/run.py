@@ -482,7 +482,9 @@ def made_differently(record: dict[str, Any], reference: dict[str, Any]) -> str:
     if old != new:
         changed = [f"{k} {old.get(k, 'unset')} -> {new.get(k, 'unset')}"
                    for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
-        parts.append("procedure " + ", ".join(changed))
+        # a line, not a page: the first three, then how many more
+        more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+        parts.append("procedure " + ", ".join(changed[:3]) + more)
     if record.get("scene_sha256") != reference.get("scene_sha256"):
         parts.append("another scene (the preset has changed)")
     return "; ".join(parts)
